@@ -1,0 +1,1 @@
+"""Throughput benchmarks: scripts that print a markdown table and write JSON."""

@@ -1,0 +1,285 @@
+"""The two robots as planar MJX bodies: Point (as in Safety-Gymnasium) and Car (traction in JAX).
+
+Both robots stand on planar joints (slide x, slide y, hinge yaw) with no floor contact, because
+MJX contacts dominate the cost of a step (see docs/ENVIRONMENTS.md). Sensors are computed in JAX
+from the MJX state after a final `mjx.forward`, exactly as MuJoCo's site sensors would read them
+(MJX leaves the accelerometer at zero; tests compare every reading with native MuJoCo).
+"""
+
+import dataclasses
+import functools
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+from mujoco import mjx
+
+from envs.geometry import rot2
+from envs.types import EnvParams
+
+GRAVITY = 9.81  # m/s^2
+MAGNETIC_FIELD = (0.0, -0.5)  # world xy field read by the magnetometer (z component is 0)
+N_SUBSTEPS = 10  # physics steps per env step, as the reference
+
+_PLANAR_JOINTS = """
+   <joint name="x" type="slide" axis="1 0 0" damping="{d}"/>
+   <joint name="y" type="slide" axis="0 1 0" damping="{d}"/>
+   <joint name="z" type="hinge" axis="0 0 1" damping="{dz}"/>
+   <site name="agent" pos="0 0 0"/>"""
+
+POINT_XML = """<mujoco model="point">
+ <option timestep="0.002" integrator="Euler" magnetic="0 -0.5 0"><flag contact="disable"/></option>
+ <worldbody>
+  <body name="agent" pos="0 0 0.1">""" + _PLANAR_JOINTS.format(d=0.01, dz=0.005) + """
+   <geom name="agent" type="sphere" size="0.1" density="1" contype="0" conaffinity="0"/>
+   <geom name="pointarrow" type="box" size="0.05 0.05 0.05" pos="0.1 0 0" density="1"
+         contype="0" conaffinity="0"/>
+  </body>
+ </worldbody>
+ <actuator>
+  <motor name="x" site="agent" gear="0.3 0 0 0 0 0" ctrllimited="true" ctrlrange="-1 1"
+         forcelimited="true" forcerange="-0.05 0.05"/>
+  <velocity name="z" joint="z" gear="0.3" kv="1" ctrllimited="true" ctrlrange="-1 1"
+            forcelimited="true" forcerange="-0.05 0.05"/>
+ </actuator>
+</mujoco>"""
+
+# The reference car's chassis, wheels and caster as geoms of one planar body (same masses and
+# inertia as the reference assembly, density 5); wheels and caster no longer touch a floor.
+CAR_XML = """<mujoco model="car">
+ <option timestep="0.004" integrator="Euler" magnetic="0 -0.5 0"><flag contact="disable"/></option>
+ <default><geom density="5" contype="0" conaffinity="0"/></default>
+ <worldbody>
+  <body name="agent" pos="0 0 0.1">""" + _PLANAR_JOINTS.format(d=0, dz=0) + """
+   <geom name="agent" type="box" size=".1 .1 .05"/>
+   <geom name="back_bumper" type="box" pos="0 .15 0" size=".1 .01 .05"/>
+   <geom name="back_connector" type="box" pos="0 .125 0" size=".01 .025 .03"/>
+   <geom name="front_bumper" type="box" pos="0 -.165 0" size=".05 .01 .05"/>
+   <geom name="front_connector" type="box" pos="0 -.13 .04" size=".05 .03 .01"/>
+   <geom name="left" type="cylinder" fromto="-.155 .1 -.05 -.105 .1 -.05" size=".05"/>
+   <geom name="right" type="cylinder" fromto=".105 .1 -.05 .155 .1 -.05" size=".05"/>
+   <geom name="rear" type="sphere" pos="0 -.1 -.05" size=".05"/>
+  </body>
+ </worldbody>
+</mujoco>"""
+
+
+def _scaled_model(model: mjx.Model, params: EnvParams) -> mjx.Model:
+    """The MJX model with the dynamics scales of `params` applied (traced, so no recompile)."""
+    return model.replace(
+        actuator_gear=model.actuator_gear * params.gear_scale,
+        dof_damping=model.dof_damping * params.damping_scale,
+        body_mass=model.body_mass * params.mass_scale,
+        body_inertia=model.body_inertia * params.mass_scale,
+    )
+
+
+def planar_sensors(data: mjx.Data) -> jax.Array:
+    """The 12 body-frame site sensors at the body origin: accelerometer (m/s^2, reads +g on z at
+    rest), velocimeter (m/s), gyro (rad/s), magnetometer (world field (0, -0.5, 0) in body frame).
+
+    With planar joints the slide-joint accelerations are the origin's world acceleration, so the
+    accelerometer is R^T (qacc_xy, g) exactly (no Coriolis term is missing).
+    """
+    yaw = data.qpos[2]
+    rt = rot2(yaw).T
+    zero = jnp.zeros(())
+    acc = jnp.concatenate([rt @ data.qacc[:2], jnp.array([GRAVITY])])
+    vel = jnp.concatenate([rt @ data.qvel[:2], zero[None]])
+    gyro = jnp.stack([zero, zero, data.qvel[2]])
+    magn = jnp.concatenate([rt @ jnp.array(MAGNETIC_FIELD), zero[None]])
+    return jnp.concatenate([acc, vel, gyro, magn])
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Robot:
+    """A planar robot: its MJX model, collision circles (for vases) and physics step."""
+
+    name: str
+    xml: str
+    n_sensors: int
+    # Body-frame circles (x, y, radius), metres, approximating the outline for vase contact.
+    circles: tuple[tuple[float, float, float], ...]
+    keepout: float = 0.4
+
+    @functools.cached_property
+    def mj_model(self) -> mujoco.MjModel:
+        """The native MuJoCo model (built on demand: used for checks and for the MJX model)."""
+        return mujoco.MjModel.from_xml_string(self.xml)
+
+    @property
+    def timestep(self) -> float:
+        """Physics timestep in seconds (an env step is N_SUBSTEPS of them)."""
+        return float(self.mj_model.opt.timestep)
+
+    def init_data(self, model: mjx.Model, xy: jax.Array, yaw: jax.Array) -> mjx.Data:
+        """MJX data at rest at position `xy` (m) and heading `yaw` (rad), forward-computed."""
+        data = mjx.make_data(model)
+        data = data.replace(qpos=jnp.concatenate([xy, yaw[None]]))
+        return mjx.forward(model, data)
+
+
+class PointRobot(Robot):
+    """Safety-Gymnasium's Point: a thrust along body x and a yaw velocity servo, both in MJX."""
+
+    def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
+                task: dict) -> tuple[mjx.Data, dict]:
+        """Advances N_SUBSTEPS physics steps under `action` ([2], already in [-1, 1])."""
+        m = _scaled_model(model, params)
+        data = data.replace(ctrl=action)
+        data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, d), data)
+        return mjx.forward(m, data), task
+
+    def sensors(self, data: mjx.Data, task: dict) -> jax.Array:
+        """The 12 Point sensors (see `planar_sensors`)."""
+        return planar_sensors(data)
+
+    def reset_task(self, task: dict) -> dict:
+        """Point has no extra robot state."""
+        return task
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CarRobot(Robot):
+    """The Car: a planar chassis driven by wheel traction computed in JAX every substep.
+
+    A driven wheel (contact at body (+-0.13, 0.1)) under torque tau spins freely at the rim speed
+    r tau / c_w (its hinge damping c_w balances the torque within milliseconds, the wheel's inertia
+    being tiny), and drags the chassis toward that speed through a slip force
+    k_t (rim speed - ground speed) capped at mu N. Sideways it grips with
+    -mu N tanh(v_lat / v_slip).
+    The passive ball caster (contact at body (0, -0.1)) drags with -b_c v capped at mu N, and tyre
+    scrub resists yawing with -b_yaw omega. Normal loads follow from the statics of the centre of
+    mass. k_t, b_c and b_yaw are calibrated against the reference: 0.73 m/s after 4 s at
+    a = (1, 1), 0.83 m/s at a = (-1, -1), 1.24 rad/s at a = (1, -1). See docs/ENVIRONMENTS.md.
+    """
+
+    wheel_radius: float = 0.05  # m
+    torque_limit: float = 0.02  # N m: the reference actuator force range (sets the action scale)
+    wheel_damping: float = 0.001  # N m s/rad: the reference hinge damping (rim speed 1 m/s)
+    slip_gain: float = 0.01  # N s/m: k_t, traction per m/s of wheel slip (calibrated)
+    caster_drag: float = 0.0074  # N s/m: b_c, caster leading (forward, -y): terminal 0.73 m/s
+    caster_drag_trailing: float = 0.0041  # N s/m: caster trailing (backward, +y): 0.83 m/s
+    yaw_scrub: float = 0.001  # N m s: b_yaw, tyre scrub against yawing (calibrated)
+    slip_speed: float = 0.1  # m/s: sideways slip at which tyre grip saturates
+    friction: float = 1.0  # tyre-floor friction coefficient, as the reference's floor
+    contacts: tuple[tuple[float, float], ...] = ((-0.13, 0.1), (0.13, 0.1), (0.0, -0.1))
+
+    def _loads(self, model: mjx.Model) -> np.ndarray:
+        """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
+        mj = self.mj_model
+        com_y = float(mj.body_ipos[1][1])
+        y_w, y_c = self.contacts[0][1], self.contacts[2][1]
+        share = (com_y - y_c) / (y_w - y_c)
+        weight = float(mj.body_mass[1]) * GRAVITY
+        return np.array([share / 2, share / 2, 1 - share]) * weight
+
+    def traction(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
+                 loads: jax.Array, com: jax.Array) -> jax.Array:
+        """World-frame force and torque [6] on the chassis COM from wheel and caster contacts."""
+        yaw = data.qpos[2]
+        rot = rot2(yaw)
+        v_body = rot.T @ data.qvel[:2]
+        omega = data.qvel[2]
+        pts = jnp.array(self.contacts)
+        v_pts = v_body[None, :] + omega * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
+        grip = self.friction * params.friction_scale * loads * params.mass_scale
+        c_w = self.wheel_damping * params.damping_scale
+        # Positive torque drives toward body -y (the reference's sign convention).
+        rim = -self.wheel_radius * torque / c_w
+        f_long = jnp.clip(self.slip_gain * (rim - v_pts[:2, 1]), -grip[:2], grip[:2])
+        f_lat = -grip[:2] * jnp.tanh(v_pts[:2, 0] / self.slip_speed)
+        # The reference car runs faster backward (0.83 m/s) than forward (0.73): a leading ball
+        # caster drags more than a trailing one. This asymmetry is also what makes the reference
+        # car drift under random bang-bang actions, so it is kept.
+        drag_long = jnp.where(v_pts[2, 1] > 0, self.caster_drag_trailing, self.caster_drag)
+        f_caster = -params.damping_scale * jnp.array([self.caster_drag, drag_long]) * v_pts[2]
+        f_caster *= jnp.minimum(1.0, grip[2] / (jnp.linalg.norm(f_caster) + 1e-12))
+        forces = jnp.concatenate([jnp.stack([f_lat, f_long], axis=-1), f_caster[None]])
+        lever = pts - com[None, :]
+        tz = jnp.sum(lever[:, 0] * forces[:, 1] - lever[:, 1] * forces[:, 0])
+        tz -= self.yaw_scrub * params.damping_scale * omega
+        fw = rot @ forces.sum(axis=0)
+        return jnp.array([fw[0], fw[1], 0.0, 0.0, 0.0, tz])
+
+    def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
+                task: dict) -> tuple[mjx.Data, dict]:
+        """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale."""
+        m = _scaled_model(model, params)
+        torque = params.gear_scale * jnp.clip(action, -self.torque_limit, self.torque_limit)
+        loads = jnp.asarray(self._loads(model), jnp.float32)
+        com = jnp.asarray(self.mj_model.body_ipos[1][:2], jnp.float32)
+
+        def push(d):
+            f = self.traction(d, torque, params, loads, com)
+            return d.replace(xfrc_applied=d.xfrc_applied.at[1].set(f))
+
+        data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, push(d)), data)
+        data = mjx.forward(m, push(data))
+        dt = N_SUBSTEPS * self.timestep
+        quat = _quat_integrate(task["caster_quat"], self._caster_angvel(data, task), dt)
+        return data, {**task, "caster_quat": quat}
+
+    def _caster_angvel(self, data: mjx.Data, task: dict) -> jax.Array:
+        """The rolling ball's angular velocity relative to the chassis, in the ball's frame (rad/s).
+
+        A ball of radius r rolling without slip with centre velocity v spins at (z x v) / r in the
+        world (no spin about the vertical); the ball joint reports that minus the chassis yaw
+        rate, expressed in the ball's own frame, as MuJoCo's ballangvel sensor does.
+        """
+        yaw, omega = data.qpos[2], data.qvel[2]
+        rot = rot2(yaw)
+        p = rot @ jnp.array(self.contacts[2])
+        v = data.qvel[:2] + omega * jnp.array([-p[1], p[0]])
+        w_world = jnp.array([-v[1], v[0], 0.0]) / self.wheel_radius - jnp.array([0, 0, omega])
+        r_ball = _rotz(yaw) @ _quat_to_mat(task["caster_quat"])
+        return r_ball.T @ w_world
+
+    def sensors(self, data: mjx.Data, task: dict) -> jax.Array:
+        """The 24 Car sensors: the 12 planar ones, ballangvel_rear (3), ballquat_rear as 3x3 (9)."""
+        ang = self._caster_angvel(data, task)
+        mat = _quat_to_mat(task["caster_quat"]).reshape(-1)
+        return jnp.concatenate([planar_sensors(data), ang, mat])
+
+    def reset_task(self, task: dict) -> dict:
+        """The caster starts aligned with the chassis (identity), as in the reference."""
+        return {**task, "caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0])}
+
+
+def _rotz(yaw: jax.Array) -> jax.Array:
+    c, s = jnp.cos(yaw), jnp.sin(yaw)
+    return jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _quat_to_mat(q: jax.Array) -> jax.Array:
+    """Unit quaternion (w, x, y, z) to a 3x3 rotation matrix."""
+    w, x, y, z = q
+    return jnp.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _quat_integrate(q: jax.Array, w_local: jax.Array, dt: float) -> jax.Array:
+    """Rotates q by the body-frame angular velocity w_local (rad/s) held for dt seconds."""
+    angle = jnp.linalg.norm(w_local) * dt
+    axis = w_local / jnp.maximum(jnp.linalg.norm(w_local), 1e-12)
+    dq = jnp.concatenate([jnp.cos(angle / 2)[None], jnp.sin(angle / 2) * axis])
+    w1, v1 = q[0], q[1:]
+    w2, v2 = dq[0], dq[1:]
+    out = jnp.concatenate([(w1 * w2 - v1 @ v2)[None], w1 * v2 + w2 * v1 + jnp.cross(v1, v2)])
+    return out / jnp.linalg.norm(out)
+
+
+POINT = PointRobot(
+    name="Point", xml=POINT_XML, n_sensors=12,
+    circles=((0.0, 0.0, 0.1), (0.1, 0.0, 0.05)),
+)
+CAR = CarRobot(
+    name="Car", xml=CAR_XML, n_sensors=24,
+    # chassis box (circumscribed by 3 circles along y), the two wheels and the caster
+    circles=((0.0, 0.0, 0.11), (0.0, 0.1, 0.1), (0.0, -0.12, 0.07),
+             (-0.13, 0.1, 0.05), (0.13, 0.1, 0.05), (0.0, -0.1, 0.05)),
+)

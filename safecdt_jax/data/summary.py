@@ -1,0 +1,93 @@
+"""Per-episode return/cost figures of a data set, and its reward-cost scatter plot."""
+
+from __future__ import annotations
+
+import os
+from typing import Any
+
+import numpy as np
+
+from safecdt_jax.data.dataset import Dataset, atomic_path
+from safecdt_jax.data.dsrl import load_dataset
+
+
+def _num(x) -> float | None:
+    return None if x is None else float(x)
+
+
+def _tag(x: float) -> str:
+    return f"{x:g}".replace(".", "p").replace("-", "m")
+
+
+def summarize_dataset(
+    path_or_dataset: str | os.PathLike | Dataset,
+    png_path: str | os.PathLike | None = None,
+    *,
+    budget: float = 30.0,
+    safe_cost: float = 10.0,
+    high_cost: float = 100.0,
+) -> dict[str, Any]:
+    """Episode statistics in raw units (undiscounted, unscaled sums of the logged rewards/costs).
+
+    Relabelling offsets are ignored: these are the realised episodes. Keys (defaults shown):
+    n_episodes, n_transitions; return_min/max/median/mean; cost_min/max/median/mean;
+    frac_cost_le_30 and frac_cost_gt_30 (fractions of episodes with cost <= / > `budget`);
+    best_return_cost_le_10 (best return among cost <= `safe_cost`) and best_return_cost_30_100
+    (among `budget` < cost <= `high_cost`), None when no episode qualifies; n_cost_le_10 and
+    n_cost_30_100 (how many qualify). Key names follow the thresholds (30.5 -> "30p5").
+    With `png_path`, writes a reward-cost scatter PNG there atomically (matplotlib Agg).
+    JSON-serialisable: plain Python numbers and None.
+    """
+    data = path_or_dataset
+    if not isinstance(data, Dataset):
+        data = load_dataset(data)
+    lengths = np.asarray(data.lengths)
+    valid = np.arange(data.horizon)[None, :] < lengths[:, None]
+    returns = np.where(valid, np.asarray(data.rewards, np.float64), 0.0).sum(axis=1)
+    costs = np.where(valid, np.asarray(data.costs, np.float64), 0.0).sum(axis=1)
+    if returns.size == 0:
+        raise ValueError("summarize_dataset: the data set has no episodes")
+
+    safe = costs <= safe_cost
+    mid = (costs > budget) & (costs <= high_cost)
+    b, s, h = _tag(budget), _tag(safe_cost), _tag(high_cost)
+    out: dict[str, Any] = {
+        "n_episodes": int(returns.size),
+        "n_transitions": int(lengths.sum()),
+        "return_min": float(returns.min()),
+        "return_max": float(returns.max()),
+        "return_median": float(np.median(returns)),
+        "return_mean": float(returns.mean()),
+        "cost_min": float(costs.min()),
+        "cost_max": float(costs.max()),
+        "cost_median": float(np.median(costs)),
+        "cost_mean": float(costs.mean()),
+        f"frac_cost_le_{b}": float(np.mean(costs <= budget)),
+        f"frac_cost_gt_{b}": float(np.mean(costs > budget)),
+        f"best_return_cost_le_{s}": _num(returns[safe].max() if safe.any() else None),
+        f"best_return_cost_{b}_{h}": _num(returns[mid].max() if mid.any() else None),
+        f"n_cost_le_{s}": int(safe.sum()),
+        f"n_cost_{b}_{h}": int(mid.sum()),
+    }
+    if png_path is not None:
+        _scatter(png_path, costs, returns, budget, str(data.attrs.get("task", "")))
+    return out
+
+
+def _scatter(png_path, costs, returns, budget: float, title: str) -> None:
+    """Reward-cost scatter with the budget line; the figure object avoids pyplot's global state."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5, 4), dpi=100)
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.scatter(costs, returns, s=6, alpha=0.6)
+    ax.axvline(budget, color="tab:red", linestyle="--", linewidth=1, label=f"cost = {budget:g}")
+    ax.set_xlabel("episode cost")
+    ax.set_ylabel("episode return")
+    ax.set_title(title or f"{costs.size} episodes")
+    ax.legend(loc="best")
+    fig.tight_layout()
+    with atomic_path(png_path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png")

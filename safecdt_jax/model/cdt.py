@@ -1,0 +1,277 @@
+"""OSRL's Constrained Decision Transformer (CDT) as a pure Flax (linen) function.
+
+Per timestep the model reads four tokens in the order (return-to-go, cost-to-go, state, action),
+each a linear embedding plus a shared learned absolute-timestep embedding. A stack of pre-LN
+causal blocks follows; the state token's output feeds a diagonal-Gaussian action head, the action
+token's output feeds a 2-class step-cost classifier and an optional next-state head.
+
+Initialisation follows OSRL: every Dense and Embed weight ~ N(0, 0.02^2), biases 0, LayerNorms at
+identity. Deviation: PyTorch's `MultiheadAttention` keeps Xavier-uniform on its fused q/k/v
+`in_proj`; here q, k and v are separate Dense layers (so LoRA can address them by name) and get
+N(0, 0.02^2) like everything else.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import flax
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from safecdt_jax.model.config import CDTConfig
+
+Params = dict[str, Any]
+
+_W_INIT = nn.initializers.normal(stddev=0.02)
+_B_INIT = nn.initializers.zeros
+
+
+def _dense(features: int, name: str) -> nn.Dense:
+    return nn.Dense(features, kernel_init=_W_INIT, bias_init=_B_INIT, name=name)
+
+
+def _dropout_shapes(cfg: CDTConfig, b: int, k: int) -> list[tuple[int, ...]]:
+    """Shapes of every dropout mask of one forward pass, in the order they are used."""
+    n, d = 4 * k, cfg.embed_dim
+    shapes = [(b, n, d)]  # embedding dropout
+    for _ in range(cfg.num_layers):
+        shapes += [(b, cfg.num_heads, n, n), (b, n, d), (b, n, d)]  # attn probs, 2 residuals
+    return shapes
+
+
+def _dropout_noise(key: jax.Array, shapes: list[tuple[int, ...]]) -> list[jax.Array]:
+    """Uniform [0, 1) noise for all dropout masks from ONE draw.
+
+    One draw instead of one per site: with JAX's (default) partitionable threefry each RNG call
+    adds seconds of XLA compile time on CPU; the random stream is as good either way.
+    """
+    sizes = [math.prod(s) for s in shapes]
+    flat = jax.random.uniform(key, (sum(sizes),), jnp.float32)
+    parts = jnp.split(flat, np.cumsum(sizes)[:-1])
+    return [u.reshape(s) for u, s in zip(parts, shapes, strict=True)]
+
+
+def _dropout(x: jax.Array, rate: float, u: jax.Array | None) -> jax.Array:
+    """Inverted dropout (as PyTorch): zero with probability `rate`, scale the rest by 1/(1-rate)."""
+    if u is None or rate == 0.0:
+        return x
+    return jnp.where(u >= rate, x / (1.0 - rate), 0.0).astype(x.dtype)
+
+
+class _Attention(nn.Module):
+    """Multi-head self-attention with separate `query`/`key`/`value`/`out` projections."""
+
+    cfg: CDTConfig
+
+    @nn.compact
+    def __call__(self, x: jax.Array, allowed: jax.Array, u: jax.Array | None) -> jax.Array:
+        cfg = self.cfg
+        b, n, d = x.shape
+
+        def heads(y):
+            return y.reshape(b, n, cfg.num_heads, cfg.head_dim)
+
+        q = heads(_dense(d, "query")(x))
+        k = heads(_dense(d, "key")(x))
+        v = heads(_dense(d, "value")(x))
+        logits = jnp.einsum("bqhd,bkhd->bhqk", q, k) / math.sqrt(cfg.head_dim)
+        # Replace (not add) disallowed logits by a finite minimum: a query row whose keys are all
+        # masked (a left-padded slot) then gets uniform weights instead of NaN, and valid rows
+        # give masked keys exactly zero weight.
+        logits = jnp.where(allowed[:, None], logits, jnp.finfo(logits.dtype).min)
+        probs = jax.nn.softmax(logits, axis=-1)
+        probs = _dropout(probs, cfg.attention_dropout, u)
+        out = jnp.einsum("bhqk,bkhd->bqhd", probs, v).reshape(b, n, d)
+        return _dense(d, "out")(out)
+
+
+class _Block(nn.Module):
+    """Pre-LN transformer block: x + drop(attn(LN(x))), then x + drop(MLP(LN(x)))."""
+
+    cfg: CDTConfig
+
+    @nn.compact
+    def __call__(self, x: jax.Array, allowed: jax.Array, noise: list) -> jax.Array:
+        cfg = self.cfg
+        u_attn, u_res1, u_res2 = noise  # dropout noise (or None) per site
+        h = nn.LayerNorm(epsilon=cfg.layernorm_eps, name="ln1")(x)
+        h = _Attention(cfg, name="attn")(h, allowed, u_attn)
+        x = x + _dropout(h, cfg.residual_dropout, u_res1)
+        h = nn.LayerNorm(epsilon=cfg.layernorm_eps, name="ln2")(x)
+        h = _dense(cfg.mlp_ratio * cfg.embed_dim, "mlp_in")(h)
+        h = _dense(cfg.embed_dim, "mlp_out")(nn.gelu(h, approximate=False))
+        return x + _dropout(h, cfg.residual_dropout, u_res2)
+
+
+class CDT(nn.Module):
+    """The CDT network; use `init_cdt` / `apply_cdt` rather than this module directly."""
+
+    cfg: CDTConfig
+
+    @nn.compact
+    def __call__(self, batch: Mapping[str, jax.Array], train: bool) -> dict[str, jax.Array]:
+        cfg = self.cfg
+        valid = jnp.asarray(batch["mask"]).astype(bool)  # [B, K]
+        b, k = valid.shape
+
+        def clean(x, fill=0):
+            # Padded slots may hold anything (NaN, out-of-range timesteps); neutralise them so
+            # masked keys carry finite values (0 * NaN would leak through the softmax).
+            x = jnp.asarray(x)
+            return jnp.where(valid.reshape(valid.shape + (1,) * (x.ndim - 2)), x, fill)
+
+        rtg = clean(batch["returns_to_go"]).astype(jnp.float32)[..., None]
+        ctg = clean(batch["costs_to_go"]).astype(jnp.float32)[..., None]
+        if cfg.cost_transform:
+            ctg = cfg.cost_offset - ctg
+        states = clean(batch["states"]).astype(jnp.float32)
+        actions = clean(batch["actions"]).astype(jnp.float32)
+        t = jnp.clip(clean(batch["timesteps"]).astype(jnp.int32), 0, cfg.num_timestep_rows - 1)
+
+        d = cfg.embed_dim
+        time_emb = nn.Embed(cfg.num_timestep_rows, d, embedding_init=_W_INIT, name="embed_time")(t)
+        tokens = jnp.stack(
+            [
+                _dense(d, "embed_return")(rtg),
+                _dense(d, "embed_cost")(ctg),
+                _dense(d, "embed_state")(states),
+                _dense(d, "embed_action")(actions),
+            ],
+            axis=2,
+        )
+        tokens = tokens + time_emb[:, :, None]  # [B, K, 4, D]
+        x = tokens.reshape(b, 4 * k, d)  # R_0, C_0, s_0, a_0, R_1, ...
+        x = nn.LayerNorm(epsilon=cfg.layernorm_eps, name="embed_norm")(x)
+        shapes = _dropout_shapes(cfg, b, k)
+        if train:
+            noise = _dropout_noise(self.make_rng("dropout"), shapes)
+        else:
+            noise = [None] * len(shapes)  # evaluation: every dropout is the identity
+        x = _dropout(x, cfg.embedding_dropout, noise[0])
+
+        # allowed[b, q, k]: causal over the 4K tokens, and key k belongs to a valid step.
+        token_valid = jnp.repeat(valid, 4, axis=1)  # a step's 4 tokens share its flag
+        causal = jnp.tril(jnp.ones((4 * k, 4 * k), dtype=bool))
+        allowed = causal[None] & token_valid[:, None, :]
+        for i in range(cfg.num_layers):
+            x = _Block(cfg, name=f"block_{i}")(x, allowed, noise[1 + 3 * i : 4 + 3 * i])
+        x = nn.LayerNorm(epsilon=cfg.layernorm_eps, name="out_norm")(x)
+        x = x.reshape(b, k, 4, d)
+        state_out, action_out = x[:, :, 2], x[:, :, 3]
+
+        out = {
+            "action_mean": _dense(cfg.act_dim, "action_mean")(state_out),
+            "action_log_std": _dense(cfg.act_dim, "action_log_std")(state_out),
+            "cost_log_probs": jax.nn.log_softmax(_dense(2, "cost_head")(action_out), axis=-1),
+        }
+        if cfg.use_state_head:
+            out["next_state"] = _dense(cfg.obs_dim, "state_head")(action_out)
+        return out
+
+
+def dummy_batch(cfg: CDTConfig, batch_size: int = 1) -> dict[str, jax.Array]:
+    """An all-zero, all-valid batch of shape [batch_size, seq_len, ...] (for init and tests)."""
+    b, k = batch_size, cfg.seq_len
+    return {
+        "states": jnp.zeros((b, k, cfg.obs_dim), jnp.float32),
+        "actions": jnp.zeros((b, k, cfg.act_dim), jnp.float32),
+        "returns_to_go": jnp.zeros((b, k), jnp.float32),
+        "costs_to_go": jnp.zeros((b, k), jnp.float32),
+        "timesteps": jnp.broadcast_to(jnp.arange(k, dtype=jnp.int32), (b, k)),
+        "mask": jnp.ones((b, k), jnp.float32),
+    }
+
+
+def init_cdt(key: jax.Array, cfg: CDTConfig) -> Params:
+    """Initialise the CDT parameters: a plain nested dict of float32 arrays (no Flax wrapper).
+
+    Every `kernel` and `embedding` ~ N(0, 0.02^2), every `bias` 0, every LayerNorm `scale` 1 (the
+    same rule the modules' own initialisers state). Top-level keys: `embed_{return,cost,state,
+    action,time}`, `embed_norm`, `block_{i}` (each with `ln1`, `attn/{query,key,value,out}`, `ln2`,
+    `mlp_in`, `mlp_out`), `out_norm`, `action_mean`, `action_log_std`, `cost_head` and, when
+    enabled, `state_head`. Same key -> same bits.
+    """
+    return _init_jit(key, cfg)
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _init_jit(key: jax.Array, cfg: CDTConfig) -> Params:
+    # All weights come from ONE normal draw: one RNG call per parameter (as Flax's init does)
+    # costs seconds of XLA compile time on CPU with partitionable threefry.
+    paths, treedef = jax.tree_util.tree_flatten_with_path(param_shapes(cfg))
+    is_weight = [path[-1].key in ("kernel", "embedding") for path, _ in paths]
+    sizes = [math.prod(leaf.shape) for (_, leaf), w in zip(paths, is_weight, strict=True) if w]
+    noise = 0.02 * jax.random.normal(key, (sum(sizes),), jnp.float32)
+    chunks = iter(jnp.split(noise, np.cumsum(sizes)[:-1]))
+    leaves = []
+    for (path, leaf), weight in zip(paths, is_weight, strict=True):
+        if weight:
+            leaves.append(next(chunks).reshape(leaf.shape))
+        else:  # LayerNorm scale at 1, every bias at 0
+            leaves.append(jnp.full(leaf.shape, path[-1].key == "scale", jnp.float32))
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+def apply_cdt(
+    params: Params,
+    cfg: CDTConfig,
+    batch: Mapping[str, jax.Array],
+    train: bool = False,
+    key: jax.Array | None = None,
+) -> dict[str, jax.Array]:
+    """Run the CDT on a batch of context windows.
+
+    Args:
+        params: from `init_cdt` (or `merge_lora`).
+        cfg: the model's config (static under `jit`).
+        batch: `states [B,K,obs]`, `actions [B,K,act]`, `returns_to_go [B,K]` (scaled RTG),
+            `costs_to_go [B,K]` (raw CTG; the model applies the cost transform), `timesteps [B,K]`
+            (int, absolute step in the episode, clipped into the embedding table),
+            `mask [B,K]` (1 = valid step, 0 = padding). Any K works; training uses `cfg.seq_len`.
+        train: apply dropout (needs `key`).
+        key: PRNG key for dropout; ignored when `train` is False.
+
+    Returns:
+        `action_mean [B,K,act]` and `action_log_std [B,K,act]` (raw Gaussian parameters,
+        unclipped, read from the state token), `cost_log_probs [B,K,2]` (log-softmax over "step
+        cost 0 / 1", from the action token) and, if `cfg.use_state_head`, `next_state [B,K,obs]`.
+        Outputs at padded positions are finite but meaningless.
+    """
+    if train and key is None:
+        raise ValueError("apply_cdt(train=True) needs a PRNG key for dropout")
+    rngs = {"dropout": key} if train else {}
+    return CDT(cfg).apply({"params": params}, batch, train=train, rngs=rngs)
+
+
+def last_action(params: Params, cfg: CDTConfig, batch: Mapping[str, jax.Array]) -> jax.Array:
+    """Deterministic evaluation action `[B, act]` for the newest step of a left-padded window.
+
+    The window holds the last <= K steps at its right end (`mask` 1 there) and padding at the
+    left; the current step's action slot is a dummy (its token comes after the state token, so it
+    cannot influence the prediction). Returns the Gaussian mean at position K-1, clipped to
+    `[-max_action, max_action]`; equal to running the model on the unpadded prefix.
+    """
+    mean = apply_cdt(params, cfg, batch, train=False)["action_mean"][:, -1]
+    return jnp.clip(mean, -cfg.max_action, cfg.max_action)
+
+
+def count_params(tree: Any) -> int:
+    """Total number of scalars in a pytree of arrays or `jax.ShapeDtypeStruct`s."""
+    return int(sum(math.prod(getattr(x, "shape", np.shape(x))) for x in jax.tree.leaves(tree)))
+
+
+def param_shapes(cfg: CDTConfig) -> Params:
+    """The parameter pytree as `ShapeDtypeStruct`s, without allocating or computing anything."""
+
+    def init(key):
+        variables = CDT(cfg).init({"params": key}, dummy_batch(cfg), train=False)
+        # unfreeze: a plain (mutable, nested) dict whatever Flax's FrozenDict setting is.
+        return flax.core.unfreeze(variables["params"])
+
+    return jax.eval_shape(init, jax.random.key(0))

@@ -1,0 +1,144 @@
+"""Configuration of the Constrained Decision Transformer (CDT) and its LoRA adapters.
+
+One frozen, hashable dataclass holds every architectural number, so a config can be a static
+argument of `jax.jit` and two equal configs share one compiled program.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any
+
+# Sizes of the named presets: (embed_dim, num_layers, num_heads, seq_len, lora_rank, lora_alpha).
+_PRESETS: dict[str, dict[str, Any]] = {
+    # Smallest model that still exercises every code path (multi-head, padding, LoRA); for tests.
+    "tiny": dict(embed_dim=16, num_layers=1, num_heads=2, seq_len=4, lora_rank=4, lora_alpha=8.0),
+    # Default demo model: trains on a 2-core CPU in minutes (175,054 parameters for CarGoal).
+    "cpu": dict(embed_dim=64, num_layers=2, num_heads=4, seq_len=10),
+    # OSRL's default CDT: 744,910 parameters for CarGoal (obs 72, act 2, episode 1000).
+    "osrl": dict(embed_dim=128, num_layers=3, num_heads=8, seq_len=10),
+    # The Safe-CDT paper's model: about 3.5M parameters, LoRA rank 16 on q/v -> 65,536 adapters.
+    "paper": dict(embed_dim=256, num_layers=4, num_heads=8, seq_len=10),
+}
+
+PRESET_NAMES: tuple[str, ...] = tuple(_PRESETS)
+
+
+@dataclass(frozen=True)
+class CDTConfig:
+    """Architecture, loss weights and LoRA settings of a CDT (defaults = OSRL's CDT).
+
+    Attributes:
+        obs_dim: size of one observation vector.
+        act_dim: size of one action vector (actions live in [-max_action, max_action]).
+        episode_len: the task's horizon; the timestep embedding has `episode_len + seq_len` rows,
+            because training windows that run past an episode's end keep counting timesteps.
+        embed_dim: model width (every token and every residual stream has this size).
+        num_layers: number of pre-LN transformer blocks.
+        num_heads: attention heads per block; `embed_dim` must be a multiple of it.
+        seq_len: context length K in timesteps; the transformer sees 4K tokens (R, C, s, a).
+        mlp_ratio: hidden width of the block MLP as a multiple of `embed_dim` (OSRL: 4).
+        embedding_dropout: dropout on the token sequence after the embedding LayerNorm.
+        attention_dropout: dropout on the attention probabilities.
+        residual_dropout: dropout on the attention and MLP outputs before each residual add.
+        cost_transform: if True the cost-to-go input is replaced by `cost_offset - CTG` before
+            its embedding (OSRL's default, with offset 50).
+        cost_offset: the constant of the cost transform.
+        max_action: half-width of the action box; evaluation actions are clipped to it.
+        use_state_head: build the next-state head (OSRL always builds it, so its parameters are
+            part of OSRL's parameter count even though its loss weight is 0).
+        cost_loss_weight: weight of the 2-class cost classifier's NLL in the training loss.
+        state_loss_weight: weight of the next-state MSE in the training loss (0 as in OSRL).
+        layernorm_eps: LayerNorm epsilon (PyTorch's default, 1e-5).
+        lora_rank: rank r of the LoRA adapters.
+        lora_alpha: LoRA alpha; the adapter update is scaled by `lora_alpha / lora_rank`.
+        lora_targets: names of the attention projections that get adapters (q and v).
+    """
+
+    obs_dim: int
+    act_dim: int
+    episode_len: int
+    embed_dim: int = 128
+    num_layers: int = 3
+    num_heads: int = 8
+    seq_len: int = 10
+    mlp_ratio: int = 4
+    embedding_dropout: float = 0.1
+    attention_dropout: float = 0.1
+    residual_dropout: float = 0.1
+    cost_transform: bool = True
+    cost_offset: float = 50.0
+    max_action: float = 1.0
+    use_state_head: bool = True
+    cost_loss_weight: float = 0.02
+    state_loss_weight: float = 0.0
+    layernorm_eps: float = 1e-5
+    lora_rank: int = 16
+    lora_alpha: float = 32.0
+    lora_targets: tuple[str, ...] = ("query", "value")
+
+    def __post_init__(self) -> None:
+        positive = (
+            "obs_dim", "act_dim", "episode_len", "embed_dim", "num_layers", "num_heads",
+            "seq_len", "mlp_ratio", "lora_rank",
+        )
+        for name in positive:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
+                raise ValueError(f"CDTConfig.{name} must be a positive integer, got {value!r}")
+        if self.embed_dim % self.num_heads:
+            raise ValueError(
+                f"CDTConfig.embed_dim ({self.embed_dim}) must be divisible by "
+                f"num_heads ({self.num_heads})"
+            )
+        for name in ("embedding_dropout", "attention_dropout", "residual_dropout"):
+            rate = getattr(self, name)
+            if not 0.0 <= rate < 1.0:
+                raise ValueError(f"CDTConfig.{name} must be in [0, 1), got {rate!r}")
+        for name in ("max_action", "lora_alpha", "layernorm_eps"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"CDTConfig.{name} must be positive, got {getattr(self, name)!r}")
+        if self.cost_loss_weight < 0 or self.state_loss_weight < 0:
+            raise ValueError("CDTConfig loss weights must be non-negative")
+        if self.state_loss_weight > 0 and not self.use_state_head:
+            raise ValueError("CDTConfig.state_loss_weight > 0 needs use_state_head=True")
+        bad = set(self.lora_targets) - {"query", "key", "value", "out"}
+        if bad or not self.lora_targets:
+            raise ValueError(
+                f"CDTConfig.lora_targets must be a non-empty subset of query/key/value/out, "
+                f"got {self.lora_targets!r}"
+            )
+
+    @property
+    def head_dim(self) -> int:
+        """Width of one attention head, `embed_dim // num_heads`."""
+        return self.embed_dim // self.num_heads
+
+    @property
+    def num_timestep_rows(self) -> int:
+        """Rows of the absolute-timestep embedding table, `episode_len + seq_len`."""
+        return self.episode_len + self.seq_len
+
+    @property
+    def lora_scale(self) -> float:
+        """Multiplier of the LoRA update `A @ B`, `lora_alpha / lora_rank`."""
+        return self.lora_alpha / self.lora_rank
+
+    def replace(self, **changes: Any) -> CDTConfig:
+        """Return a copy with `changes` applied (validated again)."""
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def preset(
+        cls, name: str, obs_dim: int, act_dim: int, episode_len: int, **overrides: Any
+    ) -> CDTConfig:
+        """Build a named preset for a task's sizes: `tiny`, `cpu`, `osrl` or `paper`.
+
+        `overrides` replace any field of the preset (e.g. `seq_len=20`). Raises ValueError for an
+        unknown name or an invalid value.
+        """
+        if name not in _PRESETS:
+            raise ValueError(f"unknown CDT preset {name!r}; choose one of {', '.join(_PRESETS)}")
+        fields = {**_PRESETS[name], **overrides}
+        return cls(obs_dim=obs_dim, act_dim=act_dim, episode_len=episode_len, **fields)

@@ -1,0 +1,57 @@
+"""Data set summary figures on episodes with known returns and costs, and the scatter PNG."""
+
+import json
+
+import numpy as np
+
+from safecdt_jax.data import make_dataset, summarize_dataset, write_dataset
+
+COSTS = [0.0, 10.0, 25.0, 31.0, 100.0, 150.0]
+RETURNS = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
+
+
+def known_dataset():
+    """Six 4-step episodes whose per-step values sum to the totals above (junk past length 3)."""
+    n = len(COSTS)
+    rewards = np.tile(np.array(RETURNS)[:, None] / 4, (1, 4))
+    costs = np.zeros((n, 4))
+    costs[:, 0], costs[:, 2] = np.array(COSTS) / 2, np.array(COSTS) / 2
+    lengths = np.full(n, 4)
+    lengths[0] = 3  # episode 0: cost 0 and return 0.75 (its 4th step is cut)
+    return make_dataset(
+        np.zeros((n, 4, 2)),
+        np.zeros((n, 4, 1)),
+        rewards,
+        costs,
+        lengths,
+        attrs={"task": "PointGoal1"},
+    )
+
+
+def test_summary_known_values(tmp_path):
+    s = summarize_dataset(known_dataset())
+    assert s["n_episodes"] == 6 and s["n_transitions"] == 23
+    assert s["cost_min"] == 0.0 and s["cost_max"] == 150.0 and s["cost_median"] == 28.0
+    assert s["frac_cost_le_30"] == 0.5 and s["frac_cost_gt_30"] == 0.5
+    assert s["best_return_cost_le_10"] == 2.0  # costs 0 and 10 qualify
+    assert s["best_return_cost_30_100"] == 5.0  # costs 31 and 100; 150 is out
+    assert s["n_cost_le_10"] == 2 and s["n_cost_30_100"] == 2
+    assert s["return_min"] == 0.75 and s["return_max"] == 6.0
+    json.dumps(s)  # plain numbers only
+
+
+def test_summary_thresholds_and_missing_groups():
+    s = summarize_dataset(known_dataset(), budget=200.0, safe_cost=-1.0, high_cost=300.0)
+    assert s["frac_cost_le_200"] == 1.0 and s["frac_cost_gt_200"] == 0.0
+    assert s["best_return_cost_le_m1"] is None and s["best_return_cost_200_300"] is None
+    assert s["n_cost_le_m1"] == 0
+
+
+def test_summary_from_file_writes_png_atomically(tmp_path):
+    path = tmp_path / "d.hdf5"
+    write_dataset(path, known_dataset())
+    png = tmp_path / "plots" / "scatter.png"
+    s = summarize_dataset(path, png_path=png)
+    assert s == summarize_dataset(known_dataset())
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 1000
+    assert sorted(p.name for p in png.parent.iterdir()) == ["scatter.png"]

@@ -1,0 +1,99 @@
+"""Robot calibration against the reference figures and sensors against native MuJoCo."""
+
+import jax
+import jax.numpy as jnp
+import mujoco
+import numpy as np
+import pytest
+from env_helpers import hold
+
+import envs
+from envs.robots import CAR, POINT, planar_sensors
+
+SENSORS = """<sensor><accelerometer site="agent"/><velocimeter site="agent"/><gyro site="agent"/>
+<magnetometer site="agent"/></sensor></mujoco>"""
+
+
+def _speed(state):
+    return float(jnp.linalg.norm(state.data.qvel[:2]))
+
+
+def test_point_top_speed():
+    # reference: 1.468 m/s after 2 s at a = (1, 0); terminal 1.5 m/s
+    assert _speed(hold("PointCircle1", (1.0, 0.0), 2.0)) == pytest.approx(1.468, rel=0.15)
+
+
+def test_car_forward_speed_and_direction():
+    state = hold("CarCircle1", (1.0, 1.0), 4.0)
+    assert _speed(state) == pytest.approx(0.73, rel=0.15)
+    yaw = state.data.qpos[2]
+    v_body = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]]) @ np.asarray(
+        state.data.qvel[:2])
+    assert v_body[1] < -0.6 and abs(v_body[0]) < 0.05  # positive actions drive toward body -y
+
+
+def test_car_yaw_rate():
+    state = hold("CarCircle1", (1.0, -1.0), 4.0)
+    assert float(state.data.qvel[2]) == pytest.approx(1.24, rel=0.15)
+
+
+def test_action_saturates_at_force_limit():
+    # the force ranges (Car 0.02 N m, Point 0.05 N) set the action scale: beyond them, no change
+    a = hold("CarCircle1", (0.5, 0.5), 1.0)
+    b = hold("CarCircle1", (1.0, 1.0), 1.0)
+    np.testing.assert_array_equal(a.data.qvel, b.data.qvel)
+    assert _speed(hold("CarCircle1", (0.01, 0.01), 1.0)) < 0.7 * _speed(b)
+
+
+def test_dynamics_scales_shift_the_robot():
+    _, params = envs.make("PointCircle1")
+    base = _speed(hold("PointCircle1", (1.0, 0.0), 1.0))
+    weak = _speed(hold("PointCircle1", (1.0, 0.0), 1.0, params.replace(gear_scale=0.5)))
+    heavy = _speed(hold("PointCircle1", (1.0, 0.0), 1.0, params.replace(mass_scale=2.0)))
+    assert weak < 0.7 * base and heavy < 0.8 * base
+    _, cparams = envs.make("CarCircle1")
+    slick = _speed(hold("CarCircle1", (1.0, 1.0), 1.0, cparams.replace(friction_scale=0.05)))
+    assert slick < 0.8 * _speed(hold("CarCircle1", (1.0, 1.0), 1.0))
+
+
+@pytest.mark.parametrize("robot,name", [(POINT, "PointCircle1"), (CAR, "CarCircle1")])
+def test_sensors_match_native_mujoco(robot, name):
+    """Our JAX sensors read what MuJoCo's own site sensors read on the same model and state."""
+    state = hold(name, (0.8, -0.6) if robot is POINT else (1.0, -0.3), 0.6, key=5)
+    data = state.data
+    model = mujoco.MjModel.from_xml_string(robot.xml.replace("</mujoco>", SENSORS))
+    native = mujoco.MjData(model)
+    native.qpos[:] = np.asarray(data.qpos)
+    native.qvel[:] = np.asarray(data.qvel)
+    native.ctrl[:] = np.asarray(data.ctrl)
+    native.xfrc_applied[:] = np.asarray(data.xfrc_applied)
+    mujoco.mj_forward(model, native)
+    ours = np.asarray(planar_sensors(data))
+    np.testing.assert_allclose(ours, native.sensordata, rtol=1e-3, atol=2e-4)
+    assert np.abs(ours[:2]).max() > 1e-3  # the state really accelerates: the check is not trivial
+
+
+def test_accelerometer_reads_gravity_at_rest():
+    env, params = envs.make("CarGoal1")
+    state = env.reset(jax.random.PRNGKey(2), params)
+    model = mujoco.MjModel.from_xml_string(CAR.xml.replace("</mujoco>", SENSORS))
+    native = mujoco.MjData(model)
+    native.qpos[:] = np.asarray(state.data.qpos)
+    mujoco.mj_forward(model, native)
+    np.testing.assert_allclose(native.sensordata[:3], [0.0, 0.0, 9.81], atol=1e-9)
+    np.testing.assert_allclose(state.obs[:12], native.sensordata, atol=1e-5)
+    np.testing.assert_allclose(state.obs[15:24], np.eye(3).reshape(-1), atol=1e-6)  # caster
+
+
+def test_caster_rolls_without_slip():
+    state = hold("CarCircle1", (1.0, 1.0), 1.0)
+    obs = np.asarray(state.obs)
+    ang, mat = obs[12:15], obs[15:24].reshape(3, 3)
+    yaw, omega = float(state.data.qpos[2]), float(state.data.qvel[2])
+    rot = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    w_world = rot @ mat @ ang + np.array([0, 0, omega])  # ball spin in the world
+    p = rot[:2, :2] @ np.array([0.0, -0.1])  # caster centre relative to the body origin
+    centre = np.asarray(state.data.qvel[:2]) + omega * np.array([-p[1], p[0]])
+    v = np.append(centre, 0.0) + np.cross(w_world, [0, 0, -0.05])  # velocity at floor contact
+    np.testing.assert_allclose(v, 0.0, atol=1e-4)
+    np.testing.assert_allclose(mat @ mat.T, np.eye(3), atol=1e-5)
