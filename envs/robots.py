@@ -166,7 +166,7 @@ class CarRobot(Robot):
     friction: float = 1.0  # tyre-floor friction coefficient, as the reference's floor
     contacts: tuple[tuple[float, float], ...] = ((-0.13, 0.1), (0.13, 0.1), (0.0, -0.1))
 
-    def _loads(self, model: mjx.Model) -> np.ndarray:
+    def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
         mj = self.mj_model
         com_y = float(mj.body_ipos[1][1])
@@ -208,7 +208,7 @@ class CarRobot(Robot):
         """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale."""
         m = _scaled_model(model, params)
         torque = params.gear_scale * jnp.clip(action, -self.torque_limit, self.torque_limit)
-        loads = jnp.asarray(self._loads(model), jnp.float32)
+        loads = jnp.asarray(self._loads(), jnp.float32)
         com = jnp.asarray(self.mj_model.body_ipos[1][:2], jnp.float32)
 
         def push(d):
