@@ -46,7 +46,6 @@ import json
 import os
 import platform
 import statistics
-import tempfile
 import time
 from collections.abc import Callable
 from typing import Any
@@ -58,6 +57,7 @@ import numpy as np
 from mujoco import mjx
 
 import envs
+from benchmarks.common import write_json
 from envs.goal import VASE_SPEED_COST
 from envs.robots import N_SUBSTEPS, POINT, POINT_XML
 
@@ -384,7 +384,7 @@ def check(args: argparse.Namespace) -> dict:
 # ----------------------------------------------------------------------------- main
 
 
-def write_json(path: str, update: dict) -> None:
+def merge_json(path: str, update: dict) -> None:
     """Merges `update` into the JSON at `path` (if readable) and replaces it atomically."""
     try:
         with open(path) as f:
@@ -392,16 +392,7 @@ def write_json(path: str, update: dict) -> None:
     except (OSError, ValueError):
         data = {}
     data.update(update)
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(data, f, indent=1)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
+    write_json(path, data)
 
 
 def main() -> None:
@@ -428,9 +419,9 @@ def main() -> None:
             "mujoco": mujoco.__version__, "n_vases": N_VASES, "substeps": N_SUBSTEPS,
             "timestep": 0.002, "runs": N_RUNS, "args": vars(args)}
     if args.check:
-        write_json(args.out, {"check": {**meta, **check(args)}})
+        merge_json(args.out, {"check": {**meta, **check(args)}})
     else:
-        write_json(args.out, {"benchmark": {**meta, **benchmark(args)}})
+        merge_json(args.out, {"benchmark": {**meta, **benchmark(args)}})
     print(f"\nwrote {args.out}")
 
 
