@@ -1,14 +1,10 @@
-"""The `safecdt-jax` command line. Until the deployment loop lands, `demo` is the main job."""
+"""`safecdt-jax demo`: a random policy in every task (return, cost, env steps/s)."""
 
-import os
 import time
-
-os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 import typer
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
-                  help="Safe-CDT in JAX: environments, offline data, CDT, safe deployment.")
+from safecdt_jax.cli.app import app
 
 
 @app.command()
@@ -44,17 +40,3 @@ def demo(
     typer.echo(f"{'task':14s}{'return':>10s}{'cost':>10s}{'env steps/s':>14s}")
     for name, ret, cost, sps in rows:
         typer.echo(f"{name:14s}{ret:10.2f}{cost:10.1f}{sps:14,.0f}")
-
-
-@app.callback()
-def _root() -> None:
-    """Safe-CDT in JAX."""
-
-
-def main() -> None:
-    """Console-script entry point."""
-    app()
-
-
-if __name__ == "__main__":
-    main()

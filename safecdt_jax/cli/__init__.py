@@ -1,0 +1,20 @@
+"""The `safecdt-jax` command line: one module per group of subcommands, all on one Typer app.
+
+Command modules import heavy dependencies (JAX, MJX) inside their functions, so `--help` is fast.
+"""
+
+from safecdt_jax.cli import (
+    data,  # noqa: F401
+    demo,  # noqa: F401  (each module registers its commands)
+    deploy,  # noqa: F401
+    train,  # noqa: F401
+)
+from safecdt_jax.cli.app import app
+
+
+def main() -> None:
+    """Console-script entry point."""
+    app()
+
+
+__all__ = ["app", "main"]

@@ -1,0 +1,98 @@
+"""`safecdt-jax collect` and `safecdt-jax data-summary`: behaviour data sets and their coverage."""
+
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from safecdt_jax.cli.app import app
+
+
+def _fail(message: str) -> None:
+    """Exit with a one-line error (typer's own usage errors print a multi-line box)."""
+    typer.echo(f"error: {message}", err=True)
+    raise typer.Exit(2)
+
+
+@app.command("collect")
+def collect_cmd(
+    task: Annotated[str, typer.Option(help="Task, e.g. CarGoal1: {Car,Point}{Goal,Circle}{1,2}.")],
+    episodes: Annotated[int, typer.Option(help="Episodes (DSRL's data sets hold >= 1000).")] = 1000,
+    out: Annotated[Path | None, typer.Option(
+        help="Output HDF5 file (default: the cache's datasets/TASK.hdf5).")] = None,
+    seed: Annotated[int, typer.Option(help="PRNG seed (knobs, layouts, action noise).")] = 0,
+) -> None:
+    """Collects behaviour-policy episodes of a task into a DSRL-format HDF5 file."""
+    import envs
+
+    if task not in envs.NAMES:
+        _fail(f"unknown task {task!r}; valid names: {', '.join(envs.NAMES)}")
+    if episodes < 1:
+        _fail(f"--episodes must be at least 1, got {episodes}")
+
+    import jax
+    from tqdm import tqdm
+
+    from safecdt_jax import paths
+    from safecdt_jax.data.collect import check_writable, collect, write_collected
+
+    try:
+        path = check_writable(paths.dataset_path(task) if out is None else out)
+    except ValueError as e:
+        _fail(str(e))
+    start = time.perf_counter()
+    with tqdm(total=episodes, desc=f"collect {task}", unit="ep") as bar:
+        data = collect(jax.random.PRNGKey(seed), task, episodes, progress=bar.update, seed=seed)
+    collected = time.perf_counter()
+    try:
+        write_collected(path, data)
+    except OSError as e:
+        _fail(f"cannot write {path}: {e}")
+    done = time.perf_counter()
+    typer.echo(f"wrote {episodes} episodes ({int(data.lengths.sum()):,} transitions) of {task} "
+               f"to {path} in {done - start:.1f} s (collect {collected - start:.1f} s incl. "
+               f"compile, write {done - collected:.1f} s)")
+
+
+@app.command("data-summary")
+def data_summary(
+    path: Annotated[Path, typer.Argument(help="A DSRL-format HDF5 file (ours or DSRL's).")],
+    png: Annotated[Path | None, typer.Option(
+        help="Scatter plot file (default: PATH with suffix .png).")] = None,
+) -> None:
+    """Prints a data set's reward-cost coverage and checks; writes a reward-cost scatter PNG."""
+    from safecdt_jax.data.collect import coverage_checks
+    from safecdt_jax.data.dataset import DatasetError
+    from safecdt_jax.data.dsrl import load_dataset
+    from safecdt_jax.data.summary import summarize_dataset
+
+    png = path.with_suffix(".png") if png is None else png
+    try:
+        data = load_dataset(path)
+        s = summarize_dataset(data, png_path=png)
+    except DatasetError as e:
+        _fail(str(e))
+    except OSError as e:
+        _fail(f"cannot write {png}: {e}")
+    attrs = data.attrs
+    origin = ", ".join(f"{k} {attrs[k]}" for k in ("collector_version", "seed") if k in attrs)
+    typer.echo(f"{attrs.get('task', path.name)}: {s['n_episodes']} episodes, "
+               f"{s['n_transitions']:,} transitions" + (f" ({origin})" if origin else ""))
+    typer.echo(f"  return min/median/max  {s['return_min']:8.2f} {s['return_median']:8.2f} "
+               f"{s['return_max']:8.2f}")
+    typer.echo(f"  cost   min/median/max  {s['cost_min']:8.0f} {s['cost_median']:8.1f} "
+               f"{s['cost_max']:8.0f}")
+    typer.echo(f"  episodes at cost <= 30: {s['frac_cost_le_30']:.1%}, above 30: "
+               f"{s['frac_cost_gt_30']:.1%}")
+    safe, risky = s["best_return_cost_le_10"], s["best_return_cost_30_100"]
+    gain = (f" ({(risky - safe) / abs(safe):+.1%})" if safe and risky is not None else "")
+    fmt = lambda x: "none" if x is None else f"{x:.2f}"
+    typer.echo(f"  best return at cost <= 10: {fmt(safe)} ({s['n_cost_le_10']} episodes); at "
+               f"cost 30-100: {fmt(risky)} ({s['n_cost_30_100']} episodes){gain}")
+    labels = {"episodes": ">= 1000 episodes", "cost_span": "costs 0 to >= 100",
+              "cost_split": ">= 20% at cost <= 30 and > 30",
+              "frontier": "best return at cost 30-100 >= 1.1x best at cost <= 10"}
+    for name, ok in coverage_checks(s).items():
+        typer.echo(f"  {'PASS' if ok else 'FAIL'}  {labels[name]}")
+    typer.echo(f"scatter plot: {png}")

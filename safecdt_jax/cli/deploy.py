@@ -1,0 +1,162 @@
+"""`safecdt-jax evaluate`, `deploy` and `run` (the main job: data -> pretraining -> deployment)."""
+
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from safecdt_jax.cli.app import app
+
+Variants = Annotated[str, typer.Option(
+    help="Comma-separated variants: safe_cdt, no_reweight, scheduler_only, zero_shot, "
+         "naive_lora, fixed_ctg(r), step_change(r1,r2).")]
+Budgets = Annotated[str, typer.Option(help="Comma-separated cost budgets B (cost units).")]
+Seeds = Annotated[int, typer.Option(min=1, help="Seeds, all in one vmapped call.")]
+Episodes = Annotated[int, typer.Option(min=1, help="Deployment episodes per seed.")]
+
+
+def _fail(e: Exception) -> None:
+    typer.echo(f"error: {e}", err=True)
+    raise typer.Exit(1) from e
+
+
+def _deploy_config(episodes: int, horizon: int | None):
+    from safecdt_jax.deploy.config import DeployConfig
+
+    return DeployConfig(episodes=episodes, horizon=horizon)
+
+
+def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None) -> None:
+    """Parse and validate variants, budgets and the config before any long phase starts."""
+    from safecdt_jax.deploy.config import make_variant
+    from safecdt_jax.deploy.job import parse_list
+
+    cfg = _deploy_config(episodes, horizon)
+    for v in parse_list(variant, str, "variant"):
+        make_variant(v, cfg)
+    for b in parse_list(budget, float, "budget"):
+        if not b > 0:
+            raise ValueError(f"the cost budget must be positive, got {b:g}")
+
+
+def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed, out, title):
+    from safecdt_jax.deploy.job import parse_list, run_deployment, write_results
+
+    variants = parse_list(variant, str, "variant")
+    budgets = parse_list(budget, float, "budget")
+    cfg = _deploy_config(episodes, horizon)
+    results = run_deployment(ckpt, target, variants, budgets, seeds, seed=seed, cfg=cfg)
+    written = write_results(out, results, title)
+    typer.echo((Path(out) / "table.md").read_text())
+    typer.echo("wrote " + ", ".join(str(p) for p in written))
+    return results
+
+
+@app.command()
+def deploy(
+    ckpt: Annotated[Path, typer.Option(help="Pretrained checkpoint folder.")],
+    pair: Annotated[str, typer.Option(help="Source-target pair: CG1-CG2, CC1-CC2, PC1-PC2, "
+                                           "PG1-PG2 (the checkpoint must fit its target).")],
+    variant: Variants = "zero_shot,safe_cdt",
+    budget: Budgets = "30",
+    seeds: Seeds = 15,
+    episodes: Episodes = 50,
+    horizon: Annotated[int | None, typer.Option(
+        min=1, help="Cut every episode at this many steps (default: the task's).")] = None,
+    seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
+    out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
+) -> None:
+    """Deploys a pretrained CDT in the pair's target task: every variant x budget x seed at once."""
+    from safecdt_jax.deploy.job import parse_pair
+
+    try:
+        _, target = parse_pair(pair)
+        _check_runs(variant, budget, episodes, horizon)
+        _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
+                          out or Path("runs") / pair, f"Safe-CDT deployment {pair}")
+    except ValueError as e:  # bad pair/variant/budget, CheckpointError: one clean line
+        _fail(e)
+
+
+@app.command()
+def run(
+    pair: Annotated[str, typer.Option(help="CG1-CG2, CC1-CC2, PC1-PC2 or PG1-PG2.")] = "CG1-CG2",
+    budget: Budgets = "30",
+    seeds: Seeds = 15,
+    episodes: Episodes = 50,
+    variant: Variants = "safe_cdt",
+    preset: Annotated[str, typer.Option(help="CDT preset: tiny, cpu, osrl, paper.")] = "cpu",
+    data_episodes: Annotated[int | None, typer.Option(
+        min=1, help="Source data set size (default: the collector's).")] = None,
+    steps: Annotated[int | None, typer.Option(
+        min=1, help="Pretraining updates (default: the preset's).")] = None,
+    horizon: Annotated[int | None, typer.Option(
+        min=1, help="Cut every deployment episode at this many steps (default: the task's).")
+    ] = None,
+    seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
+    out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
+) -> None:
+    """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report."""
+    from safecdt_jax.data.collect import DEFAULT_EPISODES, ensure_dataset
+    from safecdt_jax.deploy.job import parse_pair
+    from safecdt_jax.pretrain.run import ensure_checkpoint
+
+    start = time.perf_counter()
+    try:
+        source, target = parse_pair(pair)
+        _check_runs(variant, budget, episodes, horizon)
+        n_data = data_episodes or DEFAULT_EPISODES
+        typer.echo(f"[1/3] source data: {source}, {n_data} episodes")
+        data = _with_bar(n_data, f"collect {source}",
+                         lambda bar: ensure_dataset(source, n_data, seed, progress=bar))
+        typer.echo(f"      {data}")
+        typer.echo(f"[2/3] pretrained CDT: preset {preset}")
+        ckpt = ensure_checkpoint(data, source, preset, steps, seed=seed)
+        typer.echo(f"      {ckpt}")
+        typer.echo(f"[3/3] deployment: {target}, {variant}, B={budget}, {seeds} seeds x "
+                   f"{episodes} episodes")
+        _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
+                          out or Path("runs") / pair, f"Safe-CDT {pair} ({preset} preset)")
+    except ValueError as e:
+        _fail(e)
+    typer.echo(f"total {time.perf_counter() - start:.0f} s")
+
+
+def _with_bar(total: int, desc: str, fn):
+    """Run `fn(update)` with a tqdm bar that is only shown if `fn` reports progress."""
+    from tqdm import tqdm
+
+    bar = None
+
+    def update(n: int) -> None:
+        nonlocal bar
+        if bar is None:
+            bar = tqdm(total=total, desc=desc, unit="episode")
+        bar.update(n)
+
+    try:
+        return fn(update)
+    finally:
+        if bar is not None:
+            bar.close()
+
+
+@app.command()
+def evaluate(
+    ckpt: Annotated[Path, typer.Option(help="Pretrained checkpoint folder.")],
+    task: Annotated[str, typer.Option(help="Task to evaluate in, e.g. CarGoal1.")],
+    targets: Annotated[str, typer.Option(
+        help="Comma-separated RETURN:COST targets (raw units), e.g. 40:20,40:40.")],
+    episodes: Annotated[int, typer.Option(min=1, help="Episodes per target.")] = 20,
+    seed: Annotated[int, typer.Option(min=0, help="PRNG seed (layouts).")] = 0,
+) -> None:
+    """Rolls out the CDT for each (return, cost) target; prints mean return, cost and VR."""
+    try:
+        from safecdt_jax.deploy.evaluate import evaluate_checkpoint, parse_targets
+
+        pairs = parse_targets(targets)
+        table = evaluate_checkpoint(ckpt, task, pairs, episodes, seed)
+    except ValueError as e:
+        _fail(e)
+    typer.echo(table)

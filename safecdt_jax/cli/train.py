@@ -1,0 +1,55 @@
+"""`safecdt-jax pretrain`: train a CDT preset on a DSRL-format data file, with checkpoints."""
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from safecdt_jax.cli.app import app
+
+
+@app.command()
+def pretrain(
+    data: Annotated[Path, typer.Option(exists=True, dir_okay=False,
+                                       help="DSRL-format HDF5 file.")],
+    preset: Annotated[str, typer.Option(help="Model preset: tiny, cpu, osrl or paper.")] = "cpu",
+    steps: Annotated[int | None, typer.Option(
+        min=1, help="Total updates (default: the preset's).")] = None,
+    out: Annotated[Path | None, typer.Option(
+        help="Checkpoint folder (default: $SAFECDT_CACHE/checkpoints/TASK-PRESET).")] = None,
+    batch: Annotated[int | None, typer.Option(
+        min=1, help="Windows per update (default: the preset's).")] = None,
+    seed: Annotated[int, typer.Option(
+        min=0, help="PRNG seed (init, relabelling, every batch).")] = 0,
+    chunk: Annotated[int | None, typer.Option(
+        min=1, help="Updates per jitted call (default: 100).")] = None,
+    task: Annotated[str | None, typer.Option(
+        help="Task name (default: the file's task attribute).")] = None,
+    resume: Annotated[bool, typer.Option(
+        help="Continue the checkpoint in --out up to --steps.")] = False,
+    overwrite: Annotated[bool, typer.Option(
+        help="Delete checkpoints already in --out first.")] = False,
+) -> None:
+    """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs."""
+    from safecdt_jax import pretrain as pt
+
+    overrides = {"seed": seed}
+    for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk)):
+        if value is not None:
+            overrides[name] = value
+    try:
+        cfg = pt.default_pretrain(preset, **overrides)
+        result = pt.pretrain(data, out, preset=preset, config=cfg, task=task, resume=resume,
+                             overwrite=overwrite)
+    except ValueError as e:  # CheckpointError, DatasetError and bad settings: one clean line
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from e
+    meta, hist = result.meta, result.history
+    loss, ll = hist.metrics["loss"], hist.metrics["log_likelihood"]
+    typer.echo(
+        f"{meta['task']} / {preset}: {meta['n_params']:,} params, {meta['step']} updates of "
+        f"{cfg.batch_size} x {meta['model']['seq_len']} steps in {hist.wall_s:.0f} s; loss "
+        f"{loss[0]:.3f} -> {loss[-1]:.3f}, action log-likelihood {ll[0]:.2f} -> {ll[-1]:.2f} "
+        f"nats/dim (first -> last chunk); R_ref {meta['dataset']['reference_return']:.2f}"
+    )
+    typer.echo(f"checkpoint: {result.path}")

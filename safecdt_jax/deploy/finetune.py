@@ -1,0 +1,123 @@
+"""Online LoRA finetuning of the CDT on the deployment buffer (METHOD.md section 4).
+
+After every episode: `cfg.lora_steps` Adam steps on the adapters only (the base params are a
+constant of the loss), each on `cfg.lora_batch` K-step windows drawn uniformly over the buffer's
+valid (episode, step) positions, RTG/CTG relabelled with what the episodes realized, and the
+cost-aware weighted behaviour-cloning loss of paper eq. 4-5. A variant without LoRA runs the same
+program and discards the update with `jnp.where`, so its adapters stay bit-identical.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from safecdt_jax.data.buffer import EpisodeBuffer, buffer_size
+from safecdt_jax.data.windows import Windows, sample_windows
+from safecdt_jax.deploy.config import DeployConfig, Variant
+from safecdt_jax.deploy.reweight import replay_weights
+from safecdt_jax.model.cdt import Params
+from safecdt_jax.model.config import CDTConfig
+from safecdt_jax.model.lora import Lora, apply_cdt_lora
+
+
+def adapter_optimizer(cfg: DeployConfig) -> optax.GradientTransformation:
+    """Adam with the adapters' learning rate `cfg.lora_lr` (optax defaults otherwise)."""
+    return optax.adam(cfg.lora_lr)
+
+
+def init_adapter_opt(lora: Lora, cfg: DeployConfig | None = None) -> optax.OptState:
+    """Fresh Adam state for `lora` (zero moments, count 0); it does not depend on the lr."""
+    return adapter_optimizer(DeployConfig() if cfg is None else cfg).init(lora)
+
+
+def lora_loss(
+    lora: Lora,
+    base_params: Params,
+    model_cfg: CDTConfig,
+    windows: Windows,
+    weights,
+    key: jax.Array | None = None,
+) -> jax.Array:
+    """Weighted behaviour-cloning loss of the merged model (scalar, action units squared).
+
+    `mean_i w_i * (masked mean over the window's steps of ||a_hat - a||^2)`, a_hat = the mean of
+    the CDT's Gaussian action head with `merge_lora(base_params, lora)`; the mean over i runs over
+    the valid windows (those with a real first step). `weights` [N] from `replay_weights`.
+    `key` None: evaluation-mode forward pass (no dropout); a key turns the CDT's dropout on.
+    """
+    batch = windows._asdict()
+    out = apply_cdt_lora(base_params, lora, model_cfg, batch, train=key is not None, key=key)
+    mask = jnp.asarray(windows.mask, jnp.float32)  # [N, K]
+    # jnp.where, not a product: padded targets never reach the sum, whatever they hold.
+    err = jnp.where(mask[..., None] > 0, out["action_mean"] - windows.actions, 0.0)
+    per_window = (err * err).sum(axis=(1, 2)) / jnp.maximum(mask.sum(axis=1), 1.0)
+    valid = mask[:, 0] > 0
+    return (jnp.where(valid, weights * per_window, 0.0).sum()
+            / jnp.maximum(valid.sum(), 1).astype(jnp.float32))
+
+
+def lora_finetune(
+    key: jax.Array,
+    lora: Lora,
+    opt_state: optax.OptState,
+    base_params: Params,
+    model_cfg: CDTConfig,
+    buffer: EpisodeBuffer,
+    lam,
+    budget,
+    variant: Variant,
+    cfg: DeployConfig,
+) -> tuple[Lora, optax.OptState, dict[str, jax.Array]]:
+    """`cfg.lora_steps` Adam steps on the adapters from the online buffer (one `lax.scan`).
+
+    Args:
+        key: PRNG key of this finetuning round.
+        lora, opt_state: the adapters and their Adam state (`init_adapter_opt`).
+        base_params: the frozen pretrained CDT params (no gradient flows to them).
+        model_cfg: the CDT config (static); windows have its `seq_len` steps.
+        buffer: the deployment's episodes (raw rewards/costs); windows are drawn uniformly over
+            its valid positions and relabelled with `cfg.reward_scale` / `cfg.cost_scale`.
+        lam: the reweighting multiplier (from `lambda_update`).
+        budget: the cost budget B (raw cost units).
+        variant: `variant.lora` off (or an empty buffer) returns `lora` and `opt_state`
+            bit-identical; `variant.reweight` off makes every replay weight 1.
+        cfg: the deployment config (static).
+
+    Returns `(lora, opt_state, aux)`; aux holds per-step arrays [lora_steps]: `loss` (the
+    weighted loss before each step's update), `weight_min` (smallest valid replay weight) and
+    `excess_fraction` (share of sequences whose cost-to-go exceeds B).
+    """
+    opt = adapter_optimizer(cfg)
+    on = jnp.asarray(variant.lora) & (buffer_size(buffer) > 0)
+
+    def step(carry, k):
+        lora, opt_state = carry
+        k_win, k_drop = jax.random.split(k)
+        win = sample_windows(
+            k_win, buffer, cfg.lora_batch, model_cfg.seq_len, None,
+            cfg.reward_scale, cfg.cost_scale,
+        )
+        valid = win.mask[:, 0] > 0
+        ctg_first = win.costs_to_go[:, 0] / cfg.cost_scale  # back to raw cost units
+        weights = replay_weights(ctg_first, valid, lam, budget, cfg, enabled=variant.reweight)
+        drop_key = k_drop if cfg.lora_dropout else None
+        loss, grads = jax.value_and_grad(lora_loss)(
+            lora, base_params, model_cfg, win, weights, drop_key
+        )
+        updates, new_opt_state = opt.update(grads, opt_state, lora)
+        new_lora = optax.apply_updates(lora, updates)
+        # Variants are data: compute the update always, keep it only where LoRA is on.
+        lora = jax.tree.map(lambda a, b: jnp.where(on, a, b), new_lora, lora)
+        opt_state = jax.tree.map(lambda a, b: jnp.where(on, a, b), new_opt_state, opt_state)
+        aux = {
+            "loss": loss,
+            "weight_min": jnp.where(valid.any(), jnp.min(jnp.where(valid, weights, jnp.inf)), 0.0),
+            "excess_fraction": jnp.mean(valid & (ctg_first > budget)),
+        }
+        return (lora, opt_state), aux
+
+    keys = jax.random.split(key, cfg.lora_steps)
+    (lora, opt_state), aux = jax.lax.scan(step, (lora, opt_state), keys)
+    return lora, opt_state, aux

@@ -1,0 +1,194 @@
+"""The deployment job behind `safecdt-jax deploy` and `run`: load, sweep, write results.
+
+A job deploys one checkpoint into one target task for every (variant, budget) run and every
+seed, in one compiled sweep, then writes `results.json` (every per-episode metric per seed, the
+configs and versions), `table.md` (the paper's Table 1 rows) and PNG figures, each atomically.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import json
+import os
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+# Source -> target task of each deployment pair of the paper (and PointGoal, ours).
+PAIRS: dict[str, tuple[str, str]] = {
+    "CG1-CG2": ("CarGoal1", "CarGoal2"),
+    "CC1-CC2": ("CarCircle1", "CarCircle2"),
+    "PC1-PC2": ("PointCircle1", "PointCircle2"),
+    "PG1-PG2": ("PointGoal1", "PointGoal2"),
+}
+
+RESULTS_FORMAT = 1
+
+
+def parse_pair(pair: str) -> tuple[str, str]:
+    """(source task, target task) of a pair name such as `CG1-CG2`; ValueError lists the valid."""
+    if pair not in PAIRS:
+        raise ValueError(f"unknown pair {pair!r}; valid pairs: {', '.join(PAIRS)}")
+    return PAIRS[pair]
+
+
+def parse_list(text: str, kind: Callable[[str], Any], what: str) -> list:
+    """Split a comma-separated option into values of `kind` (ValueError names the bad item).
+
+    Commas inside parentheses belong to the item, so `step_change(0.2,0.8)` stays whole.
+    """
+    items, depth, current = [], 0, ""
+    for ch in text:
+        depth += (ch == "(") - (ch == ")")
+        if ch == "," and depth == 0:
+            items.append(current)
+            current = ""
+        else:
+            current += ch
+    items.append(current)
+    out = []
+    for item in (i.strip() for i in items):
+        if not item:
+            raise ValueError(f"empty item in {what} list {text!r}")
+        try:
+            out.append(kind(item))
+        except ValueError as e:
+            raise ValueError(f"bad {what} {item!r}: {e}") from e
+    return out
+
+
+def run_deployment(
+    ckpt: str | os.PathLike,
+    target: str,
+    variants: Sequence[str],
+    budgets: Sequence[float],
+    seeds: int,
+    *,
+    seed: int = 0,
+    cfg=None,
+    progress: bool = True,
+) -> dict[str, Any]:
+    """Deploy checkpoint `ckpt` into task `target` for every (variant, budget) and seed.
+
+    One sweep call (runs x seeds); the episodes advance in stage-sized chunks of the same
+    compiled program so a progress bar can follow. Returns the results record (plain Python,
+    JSON-ready): `runs`, one per (variant, budget), each with per-episode metrics [seeds][episodes]
+    and the across-seed summary; plus configs, versions and timings.
+    """
+    import envs
+    from safecdt_jax.deploy.config import DeployConfig, make_variant
+    from safecdt_jax.deploy.loop import make_spec, seed_keys
+    from safecdt_jax.deploy.sweep import stack_specs, sweep
+    from safecdt_jax.pretrain.checkpoint import load_policy
+    from safecdt_jax.pretrain.run import versions
+    from safecdt_jax.report.tables import summarize_runs
+
+    cfg = DeployConfig() if cfg is None else cfg
+    if seeds < 1:
+        raise ValueError(f"seeds must be >= 1, got {seeds}")
+    env, env_params = envs.make(target)
+    policy = load_policy(ckpt, task=target)
+    r_ref = float(policy.meta["dataset"]["reference_return"])
+    combos = list(itertools.product(variants, budgets))
+    specs = stack_specs([make_spec(make_variant(v, cfg), b, r_ref) for v, b in combos])
+    keys = seed_keys(seed, seeds)
+    chunk = cfg.stage_len if cfg.episodes % cfg.stage_len == 0 else cfg.episodes
+    label = f"deploy {len(combos)} run(s) x {seeds} seeds"
+    start = time.perf_counter()
+    with _bar(cfg.episodes, label, progress) as bar:
+        metrics = sweep(keys, policy.params, env_params, specs, env=env, model_cfg=policy.cfg,
+                        cfg=cfg, chunk=chunk, progress=bar.update)
+        metrics = jax.device_get(metrics)
+    wall = time.perf_counter() - start
+    runs = []
+    for r, (variant, budget) in enumerate(combos):
+        per = {name: np.asarray(value[r]) for name, value in metrics._asdict().items()}
+        named = {"return": per["returns"], "cost": per["costs"], "violation": per["violation"],
+                 "ctg_target": per["ctg_target"], "rtg_target": per["rtg_target"],
+                 "lambda": per["lam"], "a_c": per["a_c"], "a_r": per["a_r"],
+                 "lora_loss": per["lora_loss"]}
+        runs.append({
+            "variant": variant,
+            "budget": float(budget),
+            "summary": summarize_runs(named),
+            "metrics": {k: v.astype(float).tolist() for k, v in named.items()},
+        })
+    steps = len(combos) * seeds * cfg.episodes * (cfg.horizon or env.episode_length)
+    return {
+        "format": RESULTS_FORMAT,
+        "checkpoint": str(Path(ckpt).absolute()),
+        "source": policy.meta.get("task"),
+        "target": target,
+        "seeds": seeds,
+        "seed": seed,
+        "reference_return": r_ref,
+        "deploy_config": dataclasses.asdict(cfg),
+        "model_config": policy.meta["model"],
+        "versions": versions(),
+        "timing": {"deploy_s": wall, "env_steps": steps, "env_steps_per_s": steps / wall},
+        "runs": runs,
+    }
+
+
+class _bar:
+    """A tqdm bar over episodes, or a no-op when progress is off."""
+
+    def __init__(self, total: int, desc: str, enabled: bool):
+        self.total, self.desc, self.enabled = total, desc, enabled
+
+    def __enter__(self):
+        if self.enabled:
+            from tqdm import tqdm
+
+            self.bar = tqdm(total=self.total, desc=self.desc, unit="episode")
+        return self
+
+    def update(self, n: int) -> None:
+        if self.enabled:
+            self.bar.update(n)
+
+    def __exit__(self, *exc) -> None:
+        if self.enabled:
+            self.bar.close()
+
+
+def run_label(run: dict[str, Any], budgets: int) -> str:
+    """A run's row label: the variant, plus the budget when several budgets were run."""
+    return run["variant"] + (f" B={run['budget']:g}" if budgets > 1 else "")
+
+
+def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: str) -> list[Path]:
+    """Write `results.json`, `table.md` and the figures into `out_dir` (each atomically)."""
+    from safecdt_jax.report.figures import plot_deployment
+    from safecdt_jax.report.tables import markdown_table
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    written = [_atomic_text(out / "results.json", json.dumps(results, indent=1))]
+    budgets = sorted({run["budget"] for run in results["runs"]})
+    rows = [dict(run["summary"], label=run_label(run, len(budgets))) for run in results["runs"]]
+    timing = results["timing"]
+    header = (f"# {title}\n\n{results['source']} -> {results['target']}, "
+              f"{results['seeds']} seeds x {results['deploy_config']['episodes']} episodes; "
+              f"reward, cost and VR as mean ± std over seeds (population std); "
+              f"deployment {timing['deploy_s']:.0f} s "
+              f"({timing['env_steps_per_s']:,.0f} env steps/s).\n\n")
+    written.append(_atomic_text(out / "table.md", header + markdown_table(rows)))
+    for budget in budgets:
+        runs = {run_label(r, 1): r["metrics"] for r in results["runs"] if r["budget"] == budget}
+        folder = out if len(budgets) == 1 else out / f"budget_{budget:g}"
+        figures = plot_deployment(runs, budget, folder, f"{title}, B={budget:g}")
+        written += [Path(p) for p in figures]
+    return written
+
+
+def _atomic_text(path: Path, text: str) -> Path:
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+    return path

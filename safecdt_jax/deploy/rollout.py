@@ -1,0 +1,174 @@
+"""One CDT episode in an environment as a single `lax.scan` (pretraining evaluation and deployment).
+
+The policy sees a window of the last K steps. Before step K-1 the window is left-padded: real
+steps sit at its right end with `mask` 1 and padding at its left with `mask` 0, so the model's
+causal, key-masked attention gives the same action as running it on the unpadded prefix
+(`tests/test_deploy_rollout.py` checks this). After each step the targets are decremented by what
+was realized: `rtg -= r_t`, `ctg -= c_t` (METHOD.md section 1), in raw units; the model reads the
+return-to-go times `reward_scale` and the cost-to-go times `cost_scale`, as in pretraining.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from envs.env import SafetyEnv
+from envs.types import EnvParams
+from safecdt_jax.model.cdt import Params
+from safecdt_jax.model.config import CDTConfig
+from safecdt_jax.model.infer import newest_action
+
+
+class Context(NamedTuple):
+    """The policy's sliding window of the last K steps, newest at index K-1.
+
+    states [K, obs], actions [K, act], returns_to_go [K] and costs_to_go [K] (already scaled as
+    the model reads them), timesteps [K] int32 (absolute step in the episode), mask [K] float32
+    (1 = a real step, 0 = left padding).
+    """
+
+    states: jax.Array
+    actions: jax.Array
+    returns_to_go: jax.Array
+    costs_to_go: jax.Array
+    timesteps: jax.Array
+    mask: jax.Array
+
+
+def context_init(cfg: CDTConfig) -> Context:
+    """An empty (all-padding) window of `cfg.seq_len` steps."""
+    k = cfg.seq_len
+    return Context(
+        states=jnp.zeros((k, cfg.obs_dim), jnp.float32),
+        actions=jnp.zeros((k, cfg.act_dim), jnp.float32),
+        returns_to_go=jnp.zeros((k,), jnp.float32),
+        costs_to_go=jnp.zeros((k,), jnp.float32),
+        timesteps=jnp.zeros((k,), jnp.int32),
+        mask=jnp.zeros((k,), jnp.float32),
+    )
+
+
+def context_push(ctx: Context, obs, rtg, ctg, t) -> Context:
+    """Shift the window left by one and append step `t` (its action slot 0 until it is chosen)."""
+
+    def push(x, new):
+        return jnp.concatenate([x[1:], jnp.asarray(new, x.dtype)[None]], axis=0)
+
+    return Context(
+        states=push(ctx.states, obs),
+        actions=push(ctx.actions, jnp.zeros_like(ctx.actions[0])),
+        returns_to_go=push(ctx.returns_to_go, rtg),
+        costs_to_go=push(ctx.costs_to_go, ctg),
+        timesteps=push(ctx.timesteps, t),
+        mask=push(ctx.mask, 1.0),
+    )
+
+
+def context_action(params: Params, cfg: CDTConfig, ctx: Context) -> jax.Array:
+    """Deterministic action [act] for the newest step: the policy mean, clipped to the box.
+
+    Uses the trimmed evaluation pass (`model.infer.newest_action`), equal to `last_action`.
+    """
+    batch = {name: value[None] for name, value in ctx._asdict().items()}
+    return newest_action(params, cfg, batch)[0]
+
+
+def cdt_episode(
+    key: jax.Array,
+    env: SafetyEnv,
+    env_params: EnvParams,
+    params: Params,
+    cfg: CDTConfig,
+    target_return,
+    target_cost,
+    *,
+    reward_scale: float = 0.1,
+    cost_scale: float = 1.0,
+    clip_ctg: bool = True,
+    horizon: int | None = None,
+) -> dict[str, jax.Array]:
+    """Run one episode of the CDT with the given targets, T steps (default: the env's horizon).
+
+    Args:
+        key: PRNG key of the episode (layout and goal re-sampling).
+        env, env_params: the task and its level/dynamics data.
+        params: CDT parameters (base, or base merged with LoRA adapters).
+        cfg: the model's config (static).
+        target_return: initial return-to-go, raw return units (traced scalar ok).
+        target_cost: initial cost-to-go, raw cost units = cost steps (traced scalar ok).
+        reward_scale, cost_scale: the pretraining scales of the RTG / CTG tokens.
+        clip_ctg: clip the cost-to-go at 0 once the budget is spent (METHOD default); False keeps
+            OSRL's rule of letting it go negative.
+        horizon: steps T to run (static); None = the env's time limit. A shorter horizon cuts
+            the episode there (for tests and quick looks).
+
+    Returns a dict: per step `observations [T, obs]` (the observation the action was chosen
+    from), `actions [T, act]`, `rewards [T]`, `costs [T]`, `returns_to_go [T]`, `costs_to_go [T]`
+    (raw targets the model saw at each step); per episode `length` (int32 steps until done),
+    `return` and `cost` (sums over the episode). Steps after `done` are zero and not counted.
+    """
+    horizon = env.episode_length if horizon is None else horizon
+
+    def body(carry, t):
+        state, ctx, rtg, ctg, alive = carry
+        ctx = context_push(ctx, state.obs, rtg * reward_scale, ctg * cost_scale, t)
+        action = context_action(params, cfg, ctx)
+        ctx = ctx._replace(actions=ctx.actions.at[-1].set(action))
+        nxt = env.step(state, action, env_params)
+        reward = jnp.where(alive, nxt.reward, 0.0)
+        cost = jnp.where(alive, nxt.cost, 0.0)
+        new_ctg = ctg - cost
+        new_ctg = jnp.maximum(new_ctg, 0.0) if clip_ctg else new_ctg
+        out = {"observations": state.obs, "actions": action, "rewards": reward, "costs": cost,
+               "returns_to_go": rtg, "costs_to_go": ctg, "alive": alive}
+        return (nxt, ctx, rtg - reward, new_ctg, alive & (nxt.done < 0.5)), out
+
+    state = env.reset(key, env_params)
+    carry = (state, context_init(cfg), jnp.float32(target_return), jnp.float32(target_cost),
+             jnp.bool_(True))
+    _, out = jax.lax.scan(body, carry, jnp.arange(horizon, dtype=jnp.int32))
+    alive = out.pop("alive")
+    out["observations"] = jnp.where(alive[:, None], out["observations"], 0.0)
+    out["actions"] = jnp.where(alive[:, None], out["actions"], 0.0)
+    out["length"] = alive.sum().astype(jnp.int32)
+    out["return"] = out["rewards"].sum()
+    out["cost"] = out["costs"].sum()
+    return out
+
+
+class EvalResult(NamedTuple):
+    """Per (target, episode) totals of `evaluate_targets`: arrays [n_targets, n_episodes]."""
+
+    returns: jax.Array
+    costs: jax.Array
+
+
+def evaluate_targets(
+    key: jax.Array,
+    env: SafetyEnv,
+    env_params: EnvParams,
+    params: Params,
+    cfg: CDTConfig,
+    target_returns,
+    target_costs,
+    episodes: int,
+    **rollout_kwargs,
+) -> EvalResult:
+    """Episode return and cost for every (target, episode): one vmapped program, not jitted here.
+
+    `target_returns`, `target_costs`: [n_targets] raw targets; the same `episodes` keys (layouts)
+    are used for every target, so targets are compared on equal layouts.
+    """
+    keys = jax.random.split(key, episodes)
+
+    def one(k, r, c):
+        ep = cdt_episode(k, env, env_params, params, cfg, r, c, **rollout_kwargs)
+        return ep["return"], ep["cost"]
+
+    per_target = jax.vmap(jax.vmap(one, (0, None, None)), (None, 0, 0))
+    returns, costs = per_target(keys, jnp.asarray(target_returns, jnp.float32),
+                                jnp.asarray(target_costs, jnp.float32))
+    return EvalResult(returns, costs)

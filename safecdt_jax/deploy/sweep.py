@@ -1,0 +1,116 @@
+"""Sweeps: `jit(vmap(vmap(deploy)))` over runs (variants, budgets, env params) and seeds.
+
+One call deploys every (run, seed) pair: runs are the leading axis of a stacked `DeploySpec`
+(and, optionally, of the env params), seeds the second. With several devices the seed axis is
+sharded over a `('seeds',)` mesh (seeds padded to a multiple of the device count, the padding
+dropped from the result); each seed's result does not depend on how many devices ran it.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from envs.env import SafetyEnv
+from envs.types import EnvParams
+from safecdt_jax.deploy.config import DeployConfig
+from safecdt_jax.deploy.loop import (
+    DeploySpec,
+    Metrics,
+    deploy_episodes,
+    deploy_init,
+    init_adapters,
+)
+from safecdt_jax.model.cdt import Params
+from safecdt_jax.model.config import CDTConfig
+
+
+@functools.cache
+def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batched: bool):
+    """Jitted (init, episodes) programs over runs x seeds for one (env, model, config)."""
+    static = dict(env=env, model_cfg=model_cfg, cfg=cfg)
+    env_axis = 0 if env_batched else None
+
+    def init(key, lora, spec):
+        return deploy_init(key, lora, spec, **static)
+
+    def episodes(carry, index, base, env_params, spec):
+        return deploy_episodes(carry, index, base, env_params, spec, **static)
+
+    init_all = jax.vmap(jax.vmap(init, (0, 0, None)), (None, None, 0))
+    run_all = jax.vmap(jax.vmap(episodes, (0, None, None, None, None)),
+                       (0, None, None, env_axis, 0))
+    return jax.jit(init_all), jax.jit(run_all)
+
+
+def sweep(
+    keys: jax.Array,
+    base_params: Params,
+    env_params: EnvParams,
+    specs: DeploySpec,
+    *,
+    env: SafetyEnv,
+    model_cfg: CDTConfig,
+    cfg: DeployConfig,
+    env_params_batched: bool = False,
+    devices: list | None = None,
+    chunk: int | None = None,
+    progress: Callable[[int], None] | None = None,
+) -> Metrics:
+    """Deploy every run in `specs` with every seed key; returns `Metrics` arrays [R, S, E].
+
+    Args:
+        keys: [S] PRNG keys, one per seed (`loop.seed_keys`); each seed also gets its own fresh
+            adapters, drawn from its key.
+        base_params: the pretrained CDT, shared by every run and seed.
+        env_params: the target task's params; with `env_params_batched` every leaf has a leading
+            [R] axis (e.g. a sweep over friction scales), else one set for all runs.
+        specs: a `DeploySpec` whose leaves have a leading [R] axis (`stack_specs`).
+        env, model_cfg, cfg: static; one compilation per distinct triple and shapes.
+        devices: devices to shard the seed axis over (default: all of the default backend's).
+        chunk: episodes per device call (default: all `cfg.episodes` in one call). Every chunk
+            runs the same compiled program, so chunking changes nothing but the progress
+            reports; it must divide `cfg.episodes`.
+        progress: called with the number of episodes finished after each chunk.
+
+    Runs and seeds execute as one program; no Python loop over either.
+    """
+    chunk = cfg.episodes if chunk is None else chunk
+    if chunk < 1 or cfg.episodes % chunk:
+        raise ValueError(f"chunk {chunk} must divide the {cfg.episodes} episodes")
+    devices = jax.devices() if devices is None else list(devices)
+    n_seeds = keys.shape[0]
+    pad = (-n_seeds) % len(devices)
+    if pad:  # repeat the last key; the padded seeds are computed and dropped
+        keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, axis=0)])
+    lora = init_adapters(keys, base_params, model_cfg)
+    if len(devices) > 1:
+        mesh = Mesh(np.asarray(devices), ("seeds",))
+        seeded = NamedSharding(mesh, PartitionSpec("seeds"))
+        replicated = NamedSharding(mesh, PartitionSpec())
+        keys, lora = jax.device_put((keys, lora), seeded)
+        base_params, env_params, specs = jax.device_put((base_params, env_params, specs),
+                                                        replicated)
+    init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched)
+    carry = init_all(keys, lora, specs)
+    parts = []
+    for start in range(0, cfg.episodes, chunk):
+        index = jnp.arange(start, start + chunk, dtype=jnp.int32)
+        carry, metrics = run_all(carry, index, base_params, env_params, specs)
+        parts.append(jax.tree.map(lambda x: x[:, :n_seeds], metrics))
+        if progress is not None:
+            jax.block_until_ready(parts[-1])
+            progress(chunk)
+    return jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=2), *parts)
+
+
+def stack_specs(specs: list[DeploySpec]) -> DeploySpec:
+    """Stack specs along a new leading run axis (runs may differ in variant and budget)."""
+    if not specs:
+        raise ValueError("stack_specs needs at least one DeploySpec")
+    return jax.tree.map(lambda *xs: jnp.stack(xs), *specs)

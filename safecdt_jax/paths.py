@@ -1,0 +1,28 @@
+"""Where cached artefacts (datasets, checkpoints) live on disk.
+
+`SAFECDT_CACHE` overrides the root; the default is `~/.cache/safecdt-jax`. Every command that
+writes into the cache also takes an explicit `--out`, which wins over both.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+CACHE_ENV = "SAFECDT_CACHE"
+
+
+def cache_root() -> Path:
+    """The cache root folder: `$SAFECDT_CACHE` if set, else `~/.cache/safecdt-jax`."""
+    env = os.environ.get(CACHE_ENV)
+    return Path(env).expanduser() if env else Path.home() / ".cache" / "safecdt-jax"
+
+
+def dataset_path(task: str) -> Path:
+    """Default location of the collected source dataset for `task` (a DSRL-format HDF5 file)."""
+    return cache_root() / "datasets" / f"{task}.hdf5"
+
+
+def checkpoint_dir(task: str, preset: str) -> Path:
+    """Default folder of the pretrained CDT checkpoint for `task` with model preset `preset`."""
+    return cache_root() / "checkpoints" / f"{task}-{preset}"

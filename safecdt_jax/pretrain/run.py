@@ -1,0 +1,279 @@
+"""`pretrain`: data file -> trained CDT checkpoint folder (fresh, resumed, or reused)."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import platform
+import shutil
+import time
+from importlib import metadata as importlib_metadata
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+import numpy as np
+
+from safecdt_jax.data import Dataset, episode_costs, episode_returns, load_dataset
+from safecdt_jax.model import (
+    CDTConfig,
+    OptimConfig,
+    TrainState,
+    count_params,
+    init_train_state,
+    param_shapes,
+)
+from safecdt_jax.paths import checkpoint_dir
+from safecdt_jax.pretrain.checkpoint import (
+    FORMAT,
+    CheckpointError,
+    checkpoint_steps,
+    config_diff,
+    config_record,
+    read_meta,
+    restore_state,
+    save_checkpoint,
+    task_sizes,
+)
+from safecdt_jax.pretrain.config import PretrainConfig, default_pretrain
+from safecdt_jax.pretrain.loop import History, prepare_data, stream_key, train
+
+_PACKAGES = ("safecdt-jax", "jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy")
+
+
+class RunSpec(NamedTuple):
+    """Everything a run is determined by, before any training: inputs, configs and `meta`."""
+
+    data: Dataset
+    task: str
+    out: Path
+    cdt_cfg: CDTConfig
+    optim: OptimConfig
+    cfg: PretrainConfig
+    meta: dict[str, Any]
+
+
+class PretrainResult(NamedTuple):
+    """What `pretrain` returns: checkpoint folder, final state, loss history, final metadata."""
+
+    path: Path
+    state: TrainState
+    history: History
+    meta: dict[str, Any]
+
+
+def dataset_record(path: str | os.PathLike, data: Dataset) -> dict[str, Any]:
+    """Summary of the training data for the checkpoint (raw, unscaled units; real episodes).
+
+    `reference_return` is the 95th percentile of the episode returns (R_ref of METHOD.md, the
+    deployment's return unit); `cost_median` the median episode cost. `fingerprint` is a
+    BLAKE2b digest of the episode arrays, so a re-collected file is told apart from the old one
+    whatever its path or compression.
+    """
+    returns, costs = episode_returns(data), episode_costs(data)
+    digest = hashlib.blake2b(digest_size=16)
+    for name in ("lengths", "observations", "actions", "rewards", "costs"):
+        digest.update(np.ascontiguousarray(getattr(data, name)).tobytes())
+    return {
+        "path": str(Path(path).absolute()),
+        "fingerprint": digest.hexdigest(),
+        "n_episodes": int(data.n_episodes),
+        "n_transitions": int(np.sum(data.lengths)),
+        "horizon": int(data.horizon),
+        "reference_return": float(np.percentile(returns, 95)),
+        "return_median": float(np.median(returns)),
+        "return_max": float(returns.max()),
+        "cost_median": float(np.median(costs)),
+        "cost_mean": float(costs.mean()),
+        "cost_max": float(costs.max()),
+    }
+
+
+def versions() -> dict[str, str]:
+    """Python, accelerator backend and the versions of the packages that shape the result."""
+    out = {"python": platform.python_version(), "backend": jax.default_backend()}
+    for name in _PACKAGES:
+        try:
+            out[name] = importlib_metadata.version(name)
+        except importlib_metadata.PackageNotFoundError:
+            out[name] = "not installed"
+    return out
+
+
+def _episode_len(data: Dataset, task: str) -> int:
+    """The task's horizon: the file's `episode_len` attribute, else the env's, else the data's."""
+    for key in ("episode_len", "episode_length", "max_episode_steps"):
+        if key in data.attrs:
+            return int(data.attrs[key])
+    sizes = task_sizes(task)
+    return sizes[2] if sizes is not None else int(data.horizon)
+
+
+def plan(
+    data_path: str | os.PathLike,
+    out: str | os.PathLike | None = None,
+    *,
+    preset: str = "cpu",
+    config: PretrainConfig | None = None,
+    optim: OptimConfig | None = None,
+    task: str | None = None,
+    model_overrides: dict[str, Any] | None = None,
+) -> RunSpec:
+    """Load the data and fix every config of a run (nothing is trained or written).
+
+    The task is `task`, else the file's `task` attribute, else the file name without suffix; a
+    `task` that contradicts the file's attribute raises ValueError. Sizes come from the data;
+    the horizon from `_episode_len`. Defaults: `default_pretrain(preset)`, `OptimConfig()`, and
+    `out = paths.checkpoint_dir(task, preset)`.
+    """
+    data = load_dataset(data_path)
+    file_task = data.attrs.get("task")
+    if task is not None and file_task is not None and str(file_task) != task:
+        raise ValueError(f"{os.fspath(data_path)} holds task {file_task}, not {task}")
+    task = task or (str(file_task) if file_task is not None else Path(data_path).stem)
+    cfg = config or default_pretrain(preset)
+    optim = optim or OptimConfig()
+    episode_len = _episode_len(data, task)
+    if data.horizon > episode_len:
+        raise ValueError(f"{os.fspath(data_path)}: episodes of {data.horizon} steps exceed the "
+                         f"task horizon {episode_len}")
+    cdt_cfg = CDTConfig.preset(preset, data.obs_dim, data.act_dim, episode_len,
+                               **(model_overrides or {}))
+    meta = {
+        "format": FORMAT,
+        "task": task,
+        "preset": preset,
+        "obs_dim": cdt_cfg.obs_dim,
+        "act_dim": cdt_cfg.act_dim,
+        "episode_len": cdt_cfg.episode_len,
+        "n_params": count_params(param_shapes(cdt_cfg)),
+        **config_record(cdt_cfg, optim, cfg),
+        "dataset": dataset_record(data_path, data),
+        "versions": versions(),
+    }
+    out = Path(out) if out is not None else checkpoint_dir(task, preset)
+    return RunSpec(data, task, out, cdt_cfg, optim, cfg, meta)
+
+
+def pretrain(
+    data_path: str | os.PathLike,
+    out: str | os.PathLike | None = None,
+    *,
+    preset: str = "cpu",
+    config: PretrainConfig | None = None,
+    optim: OptimConfig | None = None,
+    task: str | None = None,
+    model_overrides: dict[str, Any] | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> PretrainResult:
+    """Pretrain a CDT preset on a DSRL-format file, checkpointing into folder `out`.
+
+    See `plan` for how the task, sizes and defaults are chosen, and `run` for `resume` and
+    `overwrite`. Returns `PretrainResult(path, state, history, meta)`.
+    """
+    spec = plan(data_path, out, preset=preset, config=config, optim=optim, task=task,
+                model_overrides=model_overrides)
+    return run(spec, resume=resume, overwrite=overwrite, progress=progress)
+
+
+def run(
+    spec: RunSpec, *, resume: bool = False, overwrite: bool = False, progress: bool = True
+) -> PretrainResult:
+    """Train the run `spec` (from `plan`), checkpointing into `spec.out`.
+
+    With `resume`, training continues from the latest checkpoint in the folder (if any) up to
+    `spec.cfg.steps` total updates, bit-identical to an uninterrupted run; a checkpoint whose
+    configs or data differ raises CheckpointError naming the fields. Without `resume`, a folder
+    that already holds checkpoints raises CheckpointError unless `overwrite` (which deletes them
+    first). Checkpoints are written every `checkpoint_every` updates and at the end.
+    Returns `PretrainResult(path, state, history, meta)`; `meta` is the last saved metadata.
+    """
+    out, cfg = spec.out, spec.cfg
+    existing = checkpoint_steps(out)
+    if existing and overwrite:
+        shutil.rmtree(out)
+        existing = []
+    if existing and not resume:
+        raise CheckpointError(f"{out} already holds a checkpoint (step {existing[-1]}); "
+                              "resume it or choose overwrite / another folder")
+    history = History.empty()
+    if existing:
+        saved = read_meta(out)
+        diffs = config_diff(saved, spec.meta)
+        if diffs:
+            raise CheckpointError(f"cannot resume {out}: its run differs in " + "; ".join(diffs))
+        state = restore_state(out, spec.cdt_cfg, spec.optim)
+        history = History.from_json(saved.get("history", {}))
+    else:
+        state = init_train_state(stream_key(cfg.seed, "init"), spec.cdt_cfg, spec.optim)
+
+    t0 = time.perf_counter()
+    data, weights, n_relabelled = prepare_data(spec.data, cfg)
+    dataset = {**spec.meta["dataset"], "n_relabelled": n_relabelled,
+               "n_sampled": int(np.sum(np.asarray(weights) > 0))}
+    setup_s = time.perf_counter() - t0
+    last = {"step": int(state.step), "meta": None}  # the newest checkpoint written by this call
+
+    def save(state: TrainState, history: History) -> None:
+        step = int(state.step)
+        record = {**spec.meta, "dataset": dataset, "step": step, "finished": step >= cfg.steps,
+                  "history": history.to_json(), "wall_time_s": history.wall_s,
+                  "setup_s": setup_s, "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+        save_checkpoint(out, state, record, max_to_keep=cfg.max_to_keep)
+        last.update(step=step, meta=record)
+
+    def on_chunk(state: TrainState, history: History) -> None:
+        # Save when this chunk crossed a multiple of checkpoint_every (the end is saved below).
+        step, every = int(state.step), cfg.checkpoint_every
+        if every and step < cfg.steps and step // every > last["step"] // every:
+            save(state, history)
+
+    state, history = train(state, data, weights, spec.cdt_cfg, spec.optim, cfg,
+                           history=history, on_chunk=on_chunk, progress=progress)
+    if int(state.step) != last["step"]:  # trained since the last save (always, unless resumed
+        save(state, history)               # a run that had already reached its steps)
+    meta = last["meta"] if last["meta"] is not None else read_meta(out)
+    return PretrainResult(out, state, history, meta)
+
+
+def ensure_checkpoint(
+    data_path: str | os.PathLike,
+    task: str,
+    preset: str = "cpu",
+    steps: int | None = None,
+    *,
+    batch_size: int | None = None,
+    seed: int = 0,
+    out: str | os.PathLike | None = None,
+    optim: OptimConfig | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+) -> Path:
+    """The folder of a pretrained checkpoint for this data and config, training only if needed.
+
+    Reuses the checkpoint in `out` (default `paths.checkpoint_dir(task, preset)`) when its
+    configs and data match and it has reached `steps` (default: the preset's); resumes it when
+    it matches but is shorter; trains from scratch when the folder is empty. A checkpoint with
+    another config raises CheckpointError naming the fields, unless `overwrite` (retrain).
+    """
+    overrides: dict[str, Any] = {"seed": seed}
+    if steps is not None:
+        overrides["steps"] = steps
+    if batch_size is not None:
+        overrides["batch_size"] = batch_size
+    cfg = default_pretrain(preset, **overrides)
+    spec = plan(data_path, out, preset=preset, config=cfg, optim=optim, task=task)
+    done = checkpoint_steps(spec.out)
+    retrain = False
+    if done:
+        diffs = config_diff(read_meta(spec.out), spec.meta)
+        if diffs and not overwrite:
+            raise CheckpointError(f"{spec.out} holds a checkpoint of another run ("
+                                  + "; ".join(diffs) + "); pass overwrite to retrain")
+        retrain = bool(diffs)
+        if not retrain and done[-1] >= cfg.steps:
+            return spec.out
+    run(spec, resume=True, overwrite=retrain, progress=progress)
+    return spec.out

@@ -1,0 +1,11 @@
+"""Results of deployments as tables (the paper's Table 1 row) and figures (PNG)."""
+
+from safecdt_jax.report.figures import plot_deployment
+from safecdt_jax.report.tables import (
+    METRIC_NAMES,
+    markdown_table,
+    seed_summaries,
+    summarize_runs,
+)
+
+__all__ = ["METRIC_NAMES", "markdown_table", "plot_deployment", "seed_summaries", "summarize_runs"]

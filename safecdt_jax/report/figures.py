@@ -1,0 +1,62 @@
+"""Deployment figures: per-episode cost across seeds, the CTG target trace, violation rate."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+
+def _band(ax, values: np.ndarray, label: str, color=None) -> None:
+    """Median across seeds with the 25-75% band, against the 1-based episode index."""
+    episodes = np.arange(1, values.shape[1] + 1)
+    lo, mid, hi = np.percentile(values, [25, 50, 75], axis=0)
+    line, = ax.plot(episodes, mid, label=label, color=color)
+    ax.fill_between(episodes, lo, hi, alpha=0.2, color=line.get_color())
+
+
+def plot_deployment(
+    runs: Mapping[str, Mapping[str, Any]], budget: float, out_dir: str | os.PathLike, title: str
+) -> list[str]:
+    """Write `cost.png`, `ctg_target.png` and `violation_rate.png` into `out_dir`.
+
+    `runs` maps a run label (e.g. a variant) to its metrics, arrays [seeds, episodes]: `cost`
+    (episode cost, cost steps), `ctg_target` (raw cost-to-go target), `violation` (0/1).
+    Returns the written paths. Each file is written to a temporary name and renamed.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    os.makedirs(out_dir, exist_ok=True)
+    specs = [
+        ("cost.png", "cost", "episode cost (median, 25-75% over seeds)", True),
+        ("ctg_target.png", "ctg_target", "cost-to-go target", True),
+        ("violation_rate.png", "violation", "violation rate across seeds (%)", False),
+    ]
+    paths = []
+    for filename, key, ylabel, band in specs:
+        fig, ax = plt.subplots(figsize=(6.4, 3.6))
+        for label, metrics in runs.items():
+            values = np.asarray(metrics[key], np.float64)
+            if band:
+                _band(ax, values, label)
+            else:
+                ax.plot(np.arange(1, values.shape[1] + 1), 100 * values.mean(axis=0), label=label)
+        if key != "violation":
+            ax.axhline(budget, color="k", ls="--", lw=1, label=f"budget {budget:g}")
+        ax.set_xlabel("episode")
+        ax.set_ylabel(ylabel)
+        ax.set_title(title)
+        ax.legend(fontsize=8)
+        fig.tight_layout()
+        path = os.path.join(out_dir, filename)
+        tmp = path + ".tmp.png"
+        fig.savefig(tmp, dpi=120)
+        plt.close(fig)
+        os.replace(tmp, path)
+        paths.append(path)
+    return paths

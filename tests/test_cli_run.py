@@ -1,0 +1,56 @@
+"""`safecdt-jax run` end to end on tiny settings, its reuse of cached artefacts, its errors."""
+
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+from safecdt_jax.cli import app
+
+ARGS = ["run", "--pair", "PC1-PC2", "--preset", "tiny", "--data-episodes", "32", "--steps", "20",
+        "--seeds", "2", "--episodes", "2", "--horizon", "20", "--variant", "safe_cdt,zero_shot"]
+
+
+@pytest.fixture()
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path / "cache"))
+    return tmp_path
+
+
+def test_run_end_to_end_then_reuses_data_and_checkpoint(cache):
+    out = cache / "run"
+    result = CliRunner().invoke(app, [*ARGS, "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    res = json.loads((out / "results.json").read_text())
+    assert [r["variant"] for r in res["runs"]] == ["safe_cdt", "zero_shot"]
+    for run in res["runs"]:
+        assert len(run["metrics"]["cost"]) == 2 and len(run["metrics"]["cost"][0]) == 2
+        assert run["summary"]["seeds"] == 2
+    assert res["source"] == "PointCircle1" and res["target"] == "PointCircle2"
+    assert "| safe_cdt |" in (out / "table.md").read_text()
+    for name in ("cost.png", "ctg_target.png", "violation_rate.png"):
+        assert (out / name).stat().st_size > 1000
+
+    data = cache / "cache" / "datasets" / "PointCircle1.hdf5"
+    ckpt = cache / "cache" / "checkpoints" / "PointCircle1-tiny"
+    stamps = data.stat().st_mtime_ns, sorted(p.name for p in ckpt.iterdir())
+    again = CliRunner().invoke(app, [*ARGS, "--out", str(out)])
+    assert again.exit_code == 0, again.output
+    assert (data.stat().st_mtime_ns, sorted(p.name for p in ckpt.iterdir())) == stamps
+    assert json.loads((out / "results.json").read_text())["runs"][0]["metrics"]["cost"] == \
+        res["runs"][0]["metrics"]["cost"]  # same seed, same data and checkpoint -> same result
+
+
+@pytest.mark.parametrize("flag,value,message", [
+    ("--pair", "XX-YY", "unknown pair"),
+    ("--variant", "bogus", "unknown variant"),
+    ("--budget", "-3", "budget must be positive"),
+])
+def test_run_bad_input_is_one_clear_line(cache, flag, value, message):
+    args = [a if a != "PC1-PC2" or flag != "--pair" else value for a in ARGS]
+    if flag != "--pair":
+        args += [flag, value]
+    result = CliRunner().invoke(app, [*args, "--out", str(cache / "run")])
+    assert result.exit_code == 1
+    assert message in result.output
+    assert "Traceback" not in result.output

@@ -1,0 +1,161 @@
+"""Online LoRA finetuning: adapters-only updates, variants as data, weighted loss, one program."""
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from safecdt_jax.data import buffer_add, buffer_init, sample_windows
+from safecdt_jax.deploy import (
+    DeployConfig,
+    init_adapter_opt,
+    lora_finetune,
+    lora_loss,
+    make_variant,
+    replay_weights,
+    stack_variants,
+)
+from safecdt_jax.model import CDTConfig, apply_cdt_lora, init_cdt, init_lora, merge_lora
+
+T, OBS, ACT = 12, 3, 2
+MCFG = CDTConfig.preset("tiny", OBS, ACT, T)
+# A larger lr than the default 1e-4 so a few steps move the loss visibly; same code path.
+CFG = DeployConfig(lora_steps=4, lora_batch=16, lora_lr=3e-3)
+BUDGET = 3.0  # the test episodes cost about 6: early windows exceed it, so weights vary
+finetune = jax.jit(lora_finetune, static_argnames=("model_cfg", "cfg"))
+loss_fn = jax.jit(lora_loss, static_argnames="model_cfg")
+
+
+def run(key, lora, opt, base, buf, variant, lam=5.0):
+    return finetune(key, lora, opt, base, MCFG, buf, jnp.float32(lam), jnp.float32(BUDGET),
+                    variant, cfg=CFG)
+
+
+@pytest.fixture(scope="module")
+def base():
+    # Larger weights than the 0.02 init (a pretrained model's scale), so adapters matter.
+    p = init_cdt(jax.random.key(0), MCFG)
+    return jax.tree.map(lambda x: x * 10.0 if x.ndim == 2 else x, p)
+
+
+@pytest.fixture(scope="module")
+def buf():
+    rng = np.random.default_rng(0)
+    b = buffer_init(4, T, OBS, ACT)
+    for length in (12, 9, 12):
+        b = buffer_add(b, {
+            "observations": rng.normal(size=(T, OBS)),
+            "actions": rng.uniform(-1, 1, size=(T, ACT)),
+            "rewards": rng.uniform(0, 1, size=T),
+            "costs": (rng.uniform(size=T) < 0.6).astype(np.float32),
+        }, length)
+    return b
+
+
+@pytest.fixture(scope="module")
+def lora(base):
+    return init_lora(jax.random.key(1), base, MCFG)
+
+
+def leaves_equal(a, b):
+    return all(np.array_equal(np.asarray(x), np.asarray(y))
+               for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True))
+
+
+def test_finetune_changes_only_the_adapters(base, buf, lora):
+    base_copy = jax.tree.map(np.array, base)
+    opt = init_adapter_opt(lora, CFG)
+    new, new_opt, aux = run(jax.random.key(2), lora, opt, base, buf, make_variant("safe_cdt"))
+    assert leaves_equal(base, base_copy)  # the frozen params are untouched
+    assert not leaves_equal(new, lora)
+    assert int(new_opt[0].count) == CFG.lora_steps
+    assert aux["loss"].shape == (CFG.lora_steps,) and np.isfinite(aux["loss"]).all()
+    assert 0.0 < float(aux["weight_min"].min()) < 1.0  # some sequences exceed B and lam = 5
+    # The effective model differs from the base only in the adapted q/v kernels.
+    before, after = merge_lora(base, lora, MCFG), merge_lora(base, new, MCFG)
+    changed = {jax.tree_util.keystr(path)
+               for (path, x), y in zip(jax.tree_util.tree_leaves_with_path(before),
+                                       jax.tree.leaves(after), strict=True)
+               if not np.array_equal(x, y)}
+    assert changed == {f"['block_{i}']['attn']['{t}']['kernel']"
+                       for i in range(MCFG.num_layers) for t in ("query", "value")}
+
+
+@pytest.mark.parametrize("name", ["zero_shot", "scheduler_only", "fixed_ctg(0.3)"])
+def test_lora_off_leaves_adapters_bit_identical(base, buf, lora, name):
+    opt = init_adapter_opt(lora, CFG)
+    new, new_opt, _ = run(jax.random.key(2), lora, opt, base, buf, make_variant(name))
+    assert leaves_equal(new, lora) and leaves_equal(new_opt, opt)
+
+
+def test_empty_buffer_is_a_no_op(base, lora):
+    opt = init_adapter_opt(lora, CFG)
+    empty = buffer_init(4, T, OBS, ACT)
+    new, new_opt, aux = run(jax.random.key(2), lora, opt, base, empty, make_variant("safe_cdt"))
+    assert leaves_equal(new, lora) and leaves_equal(new_opt, opt)
+    assert np.isfinite(aux["loss"]).all()
+
+
+def test_loss_decreases_on_a_fixed_buffer(base, buf, lora):
+    fixed = sample_windows(jax.random.key(9), buf, 64, MCFG.seq_len, None,
+                           CFG.reward_scale, CFG.cost_scale)
+    ones = jnp.ones(64)
+    losses = [float(loss_fn(lora, base, MCFG, fixed, ones))]
+    current, opt, variant = lora, init_adapter_opt(lora, CFG), make_variant("naive_lora")
+    for i in range(4):  # four episodes' worth of finetuning rounds
+        current, opt, _ = run(jax.random.key(10 + i), current, opt, base, buf, variant)
+        losses.append(float(loss_fn(current, base, MCFG, fixed, ones)))
+    assert all(b < a for a, b in itertools.pairwise(losses)), losses
+    assert losses[-1] < 0.95 * losses[0], losses
+
+
+def test_lora_loss_is_the_weighted_masked_mean(base, buf, lora):
+    win = sample_windows(jax.random.key(3), buf, 32, MCFG.seq_len, None, 0.1, 1.0)
+    mask = np.asarray(win.mask)
+    assert (mask == 0).any()  # some windows run past their episode's end
+    weights = replay_weights(win.costs_to_go[:, 0], mask[:, 0] > 0, 2.0, BUDGET, CFG)
+    lora_b = jax.tree.map(lambda x: x + 0.1, lora)  # non-zero B: a non-trivial merged model
+    got = float(loss_fn(lora_b, base, MCFG, win, weights))
+    apply = jax.jit(lambda lo, batch: apply_cdt_lora(base, lo, MCFG, batch)["action_mean"])
+    mean = np.asarray(apply(lora_b, win._asdict()))
+    sq = ((mean - np.asarray(win.actions)) ** 2).sum(-1)
+    per_window = (sq * mask).sum(1) / mask.sum(1)
+    np.testing.assert_allclose(got, (np.asarray(weights) * per_window).mean(), rtol=1e-5)
+    # Garbage in padded action slots does not reach the loss.
+    dirty = win._replace(actions=jnp.where(win.mask[..., None] > 0, win.actions, 1e6))
+    np.testing.assert_allclose(float(loss_fn(lora_b, base, MCFG, dirty, weights)), got,
+                               rtol=1e-6)
+
+
+def test_stacked_variants_vmap_through_one_compiled_finetune(base, buf, lora):
+    traces = []
+
+    def counted(key, variant, lora, opt, base, buf, lam):
+        traces.append(1)  # once per trace
+        return lora_finetune(key, lora, opt, base, MCFG, buf, lam, jnp.float32(BUDGET),
+                             variant, CFG)
+
+    vrun = jax.jit(jax.vmap(counted, in_axes=(None, 0, None, None, None, None, None)))
+    opt = init_adapter_opt(lora, CFG)
+    key, lam = jax.random.key(4), jnp.float32(5.0)
+    outs = {}
+    for names in (["safe_cdt", "zero_shot"], ["no_reweight", "scheduler_only"]):
+        variants = stack_variants([make_variant(n) for n in names])
+        new, new_opt, aux = vrun(key, variants, lora, opt, base, buf, lam)
+        for i, n in enumerate(names):
+            outs[n] = (jax.tree.map(lambda x, i=i: x[i], new),
+                       jax.tree.map(lambda x, i=i: x[i], new_opt),
+                       jax.tree.map(lambda x, i=i: x[i], aux))
+    assert len(traces) == 1
+    for n in ("zero_shot", "scheduler_only"):
+        assert leaves_equal(outs[n][0], lora) and leaves_equal(outs[n][1], opt)
+    for n in ("safe_cdt", "no_reweight"):
+        assert not leaves_equal(outs[n][0], lora)
+    assert float(outs["no_reweight"][2]["weight_min"].min()) == 1.0  # reweighting off
+    assert float(outs["safe_cdt"][2]["weight_min"].min()) < 1.0
+    # The vmapped lane equals the unbatched run of the same variant.
+    single, _, _ = run(key, lora, opt, base, buf, make_variant("safe_cdt"), lam=5.0)
+    for x, y in zip(jax.tree.leaves(outs["safe_cdt"][0]), jax.tree.leaves(single), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)

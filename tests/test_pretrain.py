@@ -1,0 +1,206 @@
+"""CDT pretraining on a small synthetic data set: learning, chunking, checkpoints, resume, CLI.
+
+The data: 24 episodes of 16 steps, observations N(0, 1) in 5 dims, actions `tanh(obs @ W)`
+(a learnable target), per-step costs Bernoulli(0.1), rewards uniform. The `tiny` preset, one
+shared run config, so the whole file compiles the training program only a few times.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from safecdt_jax.cli import app
+from safecdt_jax.data import episode_returns, load_dataset, make_dataset, write_dataset
+from safecdt_jax.model import OptimConfig, init_train_state
+from safecdt_jax.paths import checkpoint_dir
+from safecdt_jax.pretrain import (
+    CheckpointError,
+    PretrainConfig,
+    checkpoint_steps,
+    configs_from_meta,
+    default_pretrain,
+    ensure_checkpoint,
+    load_checkpoint,
+    load_policy,
+    make_train_chunk,
+    make_update,
+    prepare_data,
+    pretrain,
+    run_key,
+    stream_key,
+)
+
+TASK = "Synthetic"
+OPTIM = OptimConfig(learning_rate=1e-3, warmup_steps=5)  # fast enough to learn in 60 updates
+CFG = PretrainConfig(steps=60, batch_size=16, chunk=20, checkpoint_every=20, max_to_keep=5)
+
+
+def synthetic_dataset(seed: int = 0, n: int = 24, horizon: int = 16, obs_dim: int = 5):
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(size=(n, horizon, obs_dim)).astype(np.float32)
+    w = rng.normal(size=(obs_dim, 2)) / np.sqrt(obs_dim)
+    actions = np.tanh(obs @ w).astype(np.float32)
+    rewards = rng.uniform(0.0, 1.0, (n, horizon)).astype(np.float32)
+    costs = (rng.uniform(size=(n, horizon)) < 0.1).astype(np.float32)
+    return make_dataset(obs, actions, rewards, costs, np.full(n, horizon), attrs={"task": TASK})
+
+
+@pytest.fixture(scope="module")
+def data_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "synthetic.hdf5"
+    write_dataset(path, synthetic_dataset())
+    return path
+
+
+@pytest.fixture(scope="module")
+def full_run(data_file, tmp_path_factory):
+    """One uninterrupted 60-update run, checkpointed every 20 updates."""
+    out = tmp_path_factory.mktemp("ckpt") / "full"
+    return pretrain(data_file, out, preset="tiny", config=CFG, optim=OPTIM, progress=False)
+
+
+def _assert_trees_equal(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_config_defaults_and_validation():
+    cpu = default_pretrain("cpu")
+    assert cpu.relabel and (cpu.c0, cpu.reward_scale, cpu.cost_scale) == (70.0, 0.1, 1.0)
+    assert default_pretrain("osrl").batch_size == 2048
+    assert default_pretrain("cpu", steps=7).steps == 7
+    bad = [dict(steps=0), dict(batch_size=-1), dict(chunk=1.5), dict(seed=-1), dict(c0=0.0),
+           dict(reward_scale=-0.1), dict(checkpoint_every=-5), dict(relabel=1)]
+    for kwargs in bad:
+        with pytest.raises(ValueError) as err:
+            PretrainConfig(**kwargs)
+        assert "\n" not in str(err.value) and "PretrainConfig." in str(err.value)
+    with pytest.raises(ValueError, match="unknown CDT preset"):
+        default_pretrain("huge")
+
+
+def test_loss_decreases(full_run):
+    loss = full_run.history.metrics["loss"]
+    assert full_run.history.step == [20, 40, 60]
+    assert loss[-1] < loss[0] - 0.3, loss  # Gaussian NLL falls as the tanh target is fitted
+    assert int(full_run.state.step) == 60
+
+
+def test_chunked_scan_equals_step_loop(data_file):
+    """Two chunks of 20 == 40 single jitted updates with the same per-update keys."""
+    from safecdt_jax.pretrain.run import plan
+
+    spec = plan(data_file, preset="tiny", config=CFG, optim=OPTIM)
+    data, weights, _ = prepare_data(spec.data, CFG)
+    state0 = init_train_state(stream_key(0, "init"), spec.cdt_cfg, OPTIM)
+    chunk = make_train_chunk(spec.cdt_cfg, OPTIM, CFG)
+    key, stop = run_key(0), jnp.int32(40)
+    chunked = state0
+    for _ in range(2):
+        chunked, metrics = chunk(chunked, key, data, weights, stop)
+    assert int(metrics["updates"]) == 20
+    update = jax.jit(make_update(spec.cdt_cfg, OPTIM, CFG))
+    looped = state0
+    for _ in range(40):
+        looped, _ = update(looped, key, data, weights)
+    assert int(chunked.step) == int(looped.step) == 40
+    for x, y in zip(jax.tree.leaves(chunked), jax.tree.leaves(looped), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-5, atol=1e-6)
+
+
+def test_save_load_round_trip(full_run, data_file):
+    assert checkpoint_steps(full_run.path) == [20, 40, 60]
+    ckpt = load_checkpoint(full_run.path)
+    _assert_trees_equal(ckpt.params, full_run.state.params)
+    cdt_cfg, optim, cfg = configs_from_meta(ckpt.meta)
+    assert ckpt.cfg == cdt_cfg and optim == OPTIM and cfg == CFG
+    assert cdt_cfg.episode_len == 16 and cdt_cfg.obs_dim == 5  # no env named Synthetic: data's
+    meta = ckpt.meta
+    assert meta["task"] == TASK and meta["step"] == 60 and meta["finished"]
+    returns = episode_returns(load_dataset(data_file))
+    assert meta["dataset"]["reference_return"] == pytest.approx(np.percentile(returns, 95))
+    assert {"cost_median", "fingerprint", "n_episodes"} <= set(meta["dataset"])
+    assert meta["versions"]["jax"] == jax.__version__
+    assert meta["history"]["step"] == [20, 40, 60] and meta["wall_time_s"] > 0
+    older = load_checkpoint(full_run.path, step=20)
+    assert older.meta["step"] == 20 and not older.meta["finished"]
+
+
+def test_resume_is_bit_identical(full_run, data_file, tmp_path):
+    """Stop at 30 (mid-chunk), resume to 60: same params and optimiser state as one run."""
+    out = tmp_path / "resumed"
+    first = pretrain(data_file, out, preset="tiny", config=CFG.replace(steps=30), optim=OPTIM,
+                     progress=False)
+    assert int(first.state.step) == 30 and checkpoint_steps(out) == [20, 30]
+    resumed = pretrain(data_file, out, preset="tiny", config=CFG, optim=OPTIM, resume=True,
+                       progress=False)
+    _assert_trees_equal(resumed.state, full_run.state)
+    assert resumed.history.step == [20, 30, 50, 60]
+    assert resumed.meta["finished"] and resumed.meta["step"] == 60
+
+
+def test_resume_rejects_other_config_and_existing_folder(full_run, data_file):
+    with pytest.raises(CheckpointError, match=r"pretrain\.batch_size: 16 -> 8") as err:
+        pretrain(data_file, full_run.path, preset="tiny", config=CFG.replace(batch_size=8),
+                 optim=OPTIM, resume=True, progress=False)
+    assert "\n" not in str(err.value)
+    with pytest.raises(CheckpointError, match="already holds a checkpoint"):
+        pretrain(data_file, full_run.path, preset="tiny", config=CFG, optim=OPTIM,
+                 progress=False)
+
+
+def test_load_policy_checks_the_task(full_run):
+    ckpt = load_policy(full_run.path, task=TASK, obs_dim=5)
+    _assert_trees_equal(ckpt.params, full_run.state.params)
+    with pytest.raises(CheckpointError, match="does not fit observation size 7"):
+        load_policy(full_run.path, obs_dim=7)
+    with pytest.raises(CheckpointError, match=r"does not fit task CarGoal1 \(obs 72") as err:
+        load_policy(full_run.path, task="CarGoal1")
+    assert "\n" not in str(err.value)
+    with pytest.raises(CheckpointError, match="another task"):
+        load_policy(full_run.path, task="OtherTask")
+
+
+def test_missing_checkpoint_raises(tmp_path):
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_checkpoint(tmp_path / "nowhere")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(CheckpointError, match="no complete checkpoint"):
+        load_policy(tmp_path / "empty", task="CarGoal1")
+
+
+def test_cli_pretrain_and_ensure_checkpoint(data_file, tmp_path, monkeypatch):
+    monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path))
+    runner = CliRunner()
+    args = ["pretrain", "--data", str(data_file), "--preset", "tiny", "--steps", "20",
+            "--batch", "16"]
+    result = runner.invoke(app, args)
+    assert result.exit_code == 0, result.output
+    out = checkpoint_dir(TASK, "tiny")
+    assert str(out) in result.output and checkpoint_steps(out) == [20]
+    # A second plain run refuses to clobber it, with a one-line error and exit code 1.
+    again = runner.invoke(app, args)
+    assert again.exit_code == 1 and "already holds a checkpoint" in again.output
+
+    # Same config and steps reached: reused untouched. More steps: resumed in place.
+    stamp = (out / "20").stat().st_mtime_ns
+    kw = dict(batch_size=16, progress=False)
+    assert ensure_checkpoint(data_file, TASK, "tiny", 20, **kw) == out
+    assert (out / "20").stat().st_mtime_ns == stamp
+    assert ensure_checkpoint(data_file, TASK, "tiny", 40, **kw) == out
+    assert checkpoint_steps(out)[-1] == 40
+    with pytest.raises(CheckpointError, match=r"pretrain\.seed: 0 -> 1"):
+        ensure_checkpoint(data_file, TASK, "tiny", 40, seed=1, **kw)
+
+
+def test_plan_task_and_default_folder(data_file, tmp_path, monkeypatch):
+    from safecdt_jax.pretrain.run import plan
+
+    with pytest.raises(ValueError, match="holds task Synthetic, not CarGoal1"):
+        plan(data_file, task="CarGoal1")
+    monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path))
+    spec = plan(data_file, preset="tiny")
+    assert spec.out == tmp_path / "checkpoints" / "Synthetic-tiny"
+    assert spec.cfg == default_pretrain("tiny") and spec.meta["n_params"] > 0
