@@ -150,9 +150,9 @@ class GoalFamily:
         least 1, so that at full strength the field never points into an obstacle).
       clearance: careful: m beyond an obstacle's edge where avoidance starts; it reaches full
         strength `ramp` closer, so small clearances graze hazards, large ones keep well clear.
-      caution: careful: fraction of speed shed (half of it shed from the turn rate too), and half
-        of the remaining speed is shed near an obstacle, linearly from `zone` away to its edge
-        (inside one it leaves at full agility by the shortest way). Careful drivers are slower
+      caution: careful: fraction of speed and of turn rate shed; half of the remaining speed is
+        shed too near an obstacle, linearly from `zone` away to its edge (inside one it leaves
+        at full agility by the shortest way). Careful drivers are slower
         drivers: in an open layout avoidance alone costs no return, so this is what makes
         safety cost return.
       p_careful: probability of a careful episode (budget 0).
@@ -164,10 +164,10 @@ class GoalFamily:
     lookahead: Range = (0.0, 0.4)
     noise: Range = (0.0, 0.5)
     budget: Range = (5.0, 250.0)
-    pace: Range = (0.03, 0.15)
+    pace: Range = (0.015, 0.08)
     avoid: Range = (1.0, 2.5)
     clearance: Range = (-0.1, 0.4)
-    caution: Range = (0.25, 0.65)
+    caution: Range = (0.3, 0.7)
     p_careful: float = 0.4
     ramp: float = 0.25
     zone: float = 0.6
@@ -323,7 +323,7 @@ def goal_policy(drive: Drive, params: EnvParams, fam: GoalFamily = GoalFamily())
         # Full agility when reckless, and when careful but inside: the way out is to safety.
         agile = reckless | inside
         forward = forward * jnp.where(agile, 1.0, slow)
-        turn = turn * jnp.where(agile, 1.0, 1.0 - 0.5 * knobs["caution"])
+        turn = turn * jnp.where(agile, 1.0, 1.0 - knobs["caution"])
         forward, turn = _noisy(forward, turn, knobs["noise"], key)
         return actuate(drive, forward, turn)
 
@@ -331,8 +331,8 @@ def goal_policy(drive: Drive, params: EnvParams, fam: GoalFamily = GoalFamily())
 
 
 def circle_policy(drive: Drive, params: EnvParams, fam: CircleFamily = CircleFamily()) -> Policy:
-    """Circle family: chase a point running counter-clockwise on a circle: reckless, the
-    reward-optimal one; careful, a chosen one softly clamped inside the costly walls, slower.
+    """Circle family: chase a point running counter-clockwise on a circle: reckless, a wide one
+    through the walls; careful, a chosen one softly clamped inside the costly walls, slower.
 
     The chased point sits `lead` rad ahead of the polar angle of the robot's extrapolated
     position.

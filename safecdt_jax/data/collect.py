@@ -32,7 +32,7 @@ from safecdt_jax.data.dsrl import write_dataset
 
 # Bump whenever the behaviour policies, their knob ranges or the collection loop change: cached
 # data sets written by another version are collected again.
-COLLECTOR_VERSION = 1
+COLLECTOR_VERSION = 2
 DEFAULT_EPISODES = 1000  # as DSRL's data sets (>= 1000 episodes per task)
 DEFAULT_CHUNK = 100  # episodes per compiled call: ~29 MB of CarGoal observations
 
@@ -180,9 +180,9 @@ def ensure_dataset(task: str, episodes: int = DEFAULT_EPISODES, seed: int = 0,
     """The path of a current data set for `task` (default `paths.dataset_path(task)`).
 
     Returns the file as is when `is_current` (same task, collector version and seed, at least
-    `episodes` full-length episodes); otherwise collects `episodes` episodes with `PRNGKey(seed)` and writes
-    them there, replacing what was there. Raises ValueError for an unknown task, episodes < 1 or
-    an unwritable path.
+    `episodes` full-length episodes); otherwise collects `episodes` episodes with
+    `PRNGKey(seed)` and writes them there, replacing what was there. Raises ValueError for an
+    unknown task, episodes < 1 or an unwritable path.
     """
     family(task)  # validates the name before touching the disk
     if episodes < 1:
