@@ -188,7 +188,8 @@ def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: st
 
 
 def _atomic_text(path: Path, text: str) -> Path:
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
+    from safecdt_jax.data.dataset import atomic_path
+
+    with atomic_path(path, suffix=path.suffix) as tmp:
+        Path(tmp).write_text(text)
     return path

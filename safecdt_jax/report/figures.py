@@ -8,6 +8,8 @@ from typing import Any
 
 import numpy as np
 
+from safecdt_jax.data.dataset import atomic_path
+
 
 def _band(ax, values: np.ndarray, label: str, color=None) -> None:
     """Median across seeds with the 25-75% band, against the 1-based episode index."""
@@ -24,7 +26,7 @@ def plot_deployment(
 
     `runs` maps a run label (e.g. a variant) to its metrics, arrays [seeds, episodes]: `cost`
     (episode cost, cost steps), `ctg_target` (raw cost-to-go target), `violation` (0/1).
-    Returns the written paths. Each file is written to a temporary name and renamed.
+    Returns the written paths. Each file is written atomically (`data.dataset.atomic_path`).
     """
     import matplotlib
 
@@ -54,9 +56,8 @@ def plot_deployment(
         ax.legend(fontsize=8)
         fig.tight_layout()
         path = os.path.join(out_dir, filename)
-        tmp = path + ".tmp.png"
-        fig.savefig(tmp, dpi=120)
+        with atomic_path(path, suffix=".png") as tmp:
+            fig.savefig(tmp, dpi=120)
         plt.close(fig)
-        os.replace(tmp, path)
         paths.append(path)
     return paths
