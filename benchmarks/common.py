@@ -54,3 +54,24 @@ def markdown_table(headers: list[str], rows: list[list]) -> str:
     lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
     lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
     return "\n".join(lines)
+
+
+def stats(xs: list[float]) -> dict:
+    """Median, min, max and count of repeated measurements (what the peer tables print)."""
+    return {"median": median(xs), "min": min(xs), "max": max(xs), "n": len(xs)}
+
+
+def pin_threads(n: int) -> None:
+    """Limits JAX (XLA's CPU client) and BLAS/OpenMP in processes started later to `n` threads.
+
+    Must run before JAX runs anything: XLA reads its flags when the CPU client is created.
+    """
+    from jax._src import xla_bridge
+
+    if xla_bridge.backends_are_initialized():
+        raise RuntimeError("pin_threads must be called before JAX creates its backends")
+    eigen = "true" if n > 1 else "false"
+    flags = f"--xla_cpu_multi_thread_eigen={eigen} intra_op_parallelism_threads={n}"
+    os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flags}".strip()
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "BENCH_THREADS"):
+        os.environ[var] = str(n)

@@ -12,6 +12,10 @@ from envs.robots import CAR, POINT
 from envs.rollout import random_episode
 from envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State
 
+# Bump whenever the dynamics or the task rules change (robot models, traction, costs, layouts):
+# cached data sets collected under another version are collected again.
+PHYSICS_VERSION = 2
+
 NAMES = tuple(f"{robot}{task}{level}" for robot in ("Car", "Point") for task in ("Goal", "Circle")
               for level in (1, 2))
 
@@ -37,5 +41,5 @@ def make(name: str) -> tuple[SafetyEnv, EnvParams]:
     return _ENVS[key], params
 
 
-__all__ = ["MAX_HAZARDS", "MAX_VASES", "NAMES", "EnvParams", "SafetyEnv", "State", "make",
-           "random_episode"]
+__all__ = ["MAX_HAZARDS", "MAX_VASES", "NAMES", "PHYSICS_VERSION", "EnvParams", "SafetyEnv",
+           "State", "make", "random_episode"]

@@ -147,22 +147,31 @@ class CarRobot(Robot):
     A driven wheel (contact at body (+-0.13, 0.1)) under torque tau spins freely at the rim speed
     r tau / c_w (its hinge damping c_w balances the torque within milliseconds, the wheel's inertia
     being tiny), and drags the chassis toward that speed through a slip force
-    k_t (rim speed - ground speed) capped at mu N. Sideways it grips with
+    k_t (N / N_0) (rim speed - ground speed) capped at mu N. Sideways it grips with
     -mu N tanh(v_lat / v_slip).
-    The passive ball caster (contact at body (0, -0.1)) drags with -b_c v capped at mu N, and tyre
-    scrub resists yawing with -b_yaw omega. Normal loads follow from the statics of the centre of
-    mass. k_t, b_c and b_yaw are calibrated against the reference: 0.73 m/s after 4 s at
-    a = (1, 1), 0.83 m/s at a = (-1, -1), 1.24 rad/s at a = (1, -1). See docs/ENVIRONMENTS.md.
+    The passive ball caster (contact at body (0, -0.1)) drags with -(N_c / N_c0) b_c v capped at
+    mu N_c, and tyre scrub resists yawing with -b_yaw omega.
+    Normal loads: the statics of the centre of mass (N_0, N_c0) plus load transfer. The net
+    ground force F of the previous substep, acting at the floor below the centre of mass, pitches
+    the chassis: a forward push (toward body -y) moves F h / L of load from the leading caster onto
+    the trailing drive axle, a backward push moves it off the axle. Forward pushes therefore grip
+    harder than backward ones, which is what makes the reference car drift forward under random
+    bang-bang actions (about 3 m per 1000 steps).
+    The constants are calibrated against the reference: 0.73 m/s after 4 s at a = (1, 1),
+    0.83 m/s at a = (-1, -1), 1.24 rad/s at a = (1, -1), and the per-step response and drift of
+    native MuJoCo under uniform random actions. See docs/ENVIRONMENTS.md.
     """
 
     wheel_radius: float = 0.05  # m
     torque_limit: float = 0.02  # N m: the reference actuator force range (sets the action scale)
     wheel_damping: float = 0.001  # N m s/rad: the reference hinge damping (rim speed 1 m/s)
-    slip_gain: float = 0.01  # N s/m: k_t, traction per m/s of wheel slip (calibrated)
-    caster_drag: float = 0.0074  # N s/m: b_c, caster leading (forward, -y): terminal 0.73 m/s
-    caster_drag_trailing: float = 0.0041  # N s/m: caster trailing (backward, +y): 0.83 m/s
-    yaw_scrub: float = 0.001  # N m s: b_yaw, tyre scrub against yawing (calibrated)
-    slip_speed: float = 0.1  # m/s: sideways slip at which tyre grip saturates
+    slip_gain: float = 0.06  # N s/m: k_t per wheel at its static load (calibrated)
+    caster_drag: float = 0.04  # N s/m: b_c, caster leading (forward, -y), at its static load
+    caster_drag_trailing: float = 0.025  # N s/m: caster trailing (backward, +y)
+    caster_drag_side: float = 0.005  # N s/m: caster sideways
+    yaw_scrub: float = 0.01  # N m s: b_yaw, tyre scrub against yawing (calibrated)
+    slip_speed: float = 0.4  # m/s: sideways slip at which tyre grip saturates
+    load_transfer: float = 0.38  # h / L: effective centre-of-mass height over wheelbase
     friction: float = 1.0  # tyre-floor friction coefficient, as the reference's floor
     contacts: tuple[tuple[float, float], ...] = ((-0.13, 0.1), (0.13, 0.1), (0.0, -0.1))
 
@@ -177,24 +186,35 @@ class CarRobot(Robot):
 
     def traction(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
                  loads: jax.Array, com: jax.Array) -> jax.Array:
-        """World-frame force and torque [6] on the chassis COM from wheel and caster contacts."""
+        """World-frame force and torque [6] on the chassis COM from wheel and caster contacts.
+
+        `data.xfrc_applied` holds the previous substep's force (zero at reset): its body-frame
+        longitudinal part sets the load transfer.
+        """
         yaw = data.qpos[2]
         rot = rot2(yaw)
         v_body = rot.T @ data.qvel[:2]
         omega = data.qvel[2]
         pts = jnp.array(self.contacts)
         v_pts = v_body[None, :] + omega * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
-        grip = self.friction * params.friction_scale * loads * params.mass_scale
+        # Load transfer: a forward push (body -y) loads the drive axle and unloads the caster.
+        static = loads * params.mass_scale
+        weight = jnp.sum(static)
+        push = -(rot.T @ data.xfrc_applied[1, :2])[1]
+        axle = jnp.clip(static[0] + 0.5 * self.load_transfer * push, 0.0, 0.5 * weight)
+        normal = jnp.stack([axle, axle, weight - 2 * axle])
+        rel = normal / static  # load relative to the static load
+        grip = self.friction * params.friction_scale * normal
         c_w = self.wheel_damping * params.damping_scale
         # Positive torque drives toward body -y (the reference's sign convention).
         rim = -self.wheel_radius * torque / c_w
-        f_long = jnp.clip(self.slip_gain * (rim - v_pts[:2, 1]), -grip[:2], grip[:2])
+        f_long = jnp.clip(self.slip_gain * rel[:2] * (rim - v_pts[:2, 1]), -grip[:2], grip[:2])
         f_lat = -grip[:2] * jnp.tanh(v_pts[:2, 0] / self.slip_speed)
         # The reference car runs faster backward (0.83 m/s) than forward (0.73): a leading ball
-        # caster drags more than a trailing one. This asymmetry is also what makes the reference
-        # car drift under random bang-bang actions, so it is kept.
+        # caster drags more than a trailing one.
         drag_long = jnp.where(v_pts[2, 1] > 0, self.caster_drag_trailing, self.caster_drag)
-        f_caster = -params.damping_scale * jnp.array([self.caster_drag, drag_long]) * v_pts[2]
+        drag = jnp.stack([jnp.asarray(self.caster_drag_side, drag_long.dtype), drag_long])
+        f_caster = -params.damping_scale * rel[2] * drag * v_pts[2]
         f_caster *= jnp.minimum(1.0, grip[2] / (jnp.linalg.norm(f_caster) + 1e-12))
         forces = jnp.concatenate([jnp.stack([f_lat, f_long], axis=-1), f_caster[None]])
         lever = pts - com[None, :]

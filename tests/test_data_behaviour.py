@@ -25,6 +25,7 @@ from safecdt_jax.data.behaviour import (
     make_policy,
     robot_drive,
     sample_knobs,
+    schedule,
 )
 from safecdt_jax.data.collect import (
     COLLECTOR_VERSION,
@@ -78,6 +79,31 @@ def test_actions_finite_in_box_and_deterministic(task):
     assert not np.array_equal(a, np.asarray(random_actions(task, jax.random.PRNGKey(1))))
 
 
+def test_schedule_ramps_to_the_budget_at_spread():
+    # budget 50 over half of a 1000-step episode: 0.1 cost steps owed per step, then flat.
+    knobs = {"budget": jnp.float32(50.0), "spread": jnp.float32(0.5)}
+    owed = [float(schedule(knobs, jnp.int32(t), 1000)) for t in (0, 249, 499, 900)]
+    np.testing.assert_allclose(owed, [0.1, 25.0, 50.0, 50.0], rtol=1e-6)
+    assert float(schedule(dict(knobs, budget=jnp.float32(0.0)), jnp.int32(10), 1000)) == 0.0
+
+
+def test_circle_robot_runs_wide_only_while_behind_schedule():
+    # On CarCircle1's x-walls (|x| > 1.125 costs) the chased point lies beyond the wall when
+    # behind schedule (reckless) and inside it when ahead: the wheel commands differ.
+    policy = make_policy("CarCircle1")
+    knobs = {k: jnp.float32(np.mean(v)) for k, v in
+             sample_knobs(jax.random.PRNGKey(0), "CarCircle1", 64).items()}
+    knobs |= {"noise": jnp.float32(0.0), "budget": jnp.float32(50.0), "spread": jnp.float32(1.0)}
+    far = jnp.full((10, 2), 1e3)
+    state = fake_state(jnp.asarray([1.0, 0.0, 0.0]), jnp.zeros(3), far[0], far, far,
+                       jnp.int32(250))  # schedule: 50 * 251 / 500 = 25.1 owed
+    act = [np.asarray(policy(knobs, state, jnp.float32(spent), jax.random.PRNGKey(0)))
+           for spent in (10.0, 20.0, 30.0, 40.0)]
+    np.testing.assert_array_equal(act[0], act[1])  # both behind: same (reckless) command
+    np.testing.assert_array_equal(act[2], act[3])  # both ahead: same (careful) command
+    assert not np.allclose(act[1], act[2])
+
+
 def test_knobs_in_ranges_and_budget_mixture():
     for task in SOURCE_TASKS:
         fam = family(task)
@@ -96,16 +122,17 @@ def test_knobs_in_ranges_and_budget_mixture():
 
 def car_action(goal_offset):
     """The Car's action at rest at the origin, travelling toward -y (yaw 0), with the goal at
-    `goal_offset` and no hazards near: a careful and a reckless variant."""
+    `goal_offset`: careful (budget 0, no hazards near), and reckless (behind its cost schedule,
+    with the one hazard it can detour through placed on the goal)."""
     policy = make_policy("CarGoal1")
+    goal = jnp.asarray(goal_offset, jnp.float32)
     far = jnp.full((10, 2), 1e3)
-    state = fake_state(jnp.zeros(3), jnp.zeros(3), jnp.asarray(goal_offset, jnp.float32), far,
-                       far, jnp.int32(0))
     knobs = {k: jnp.float32(np.mean(v)) for k, v in
              sample_knobs(jax.random.PRNGKey(0), "CarGoal1", 64).items()}
     knobs["noise"] = jnp.float32(0.0)
     out = []
-    for budget in (0.0, 1e3):
+    for budget, hazards in ((0.0, far), (1e3, far.at[0].set(goal))):
+        state = fake_state(jnp.zeros(3), jnp.zeros(3), goal, hazards, far, jnp.int32(0))
         out.append(np.asarray(policy(dict(knobs, budget=jnp.float32(budget)), state,
                                      jnp.float32(0.0), jax.random.PRNGKey(0))))
     return out
@@ -175,10 +202,11 @@ def test_write_load_round_trip(small_collection, tmp_path):
     assert path.with_suffix(".png").read_bytes()[:4] == b"\x89PNG"
 
 
-def fake_data(task="PointCircle1", version=COLLECTOR_VERSION, seed=0, episodes=2):
+def fake_data(task="PointCircle1", version=COLLECTOR_VERSION, seed=0, episodes=2,
+              physics=envs.PHYSICS_VERSION):
     """Tiny data whose attributes (those `is_current` reads) claim a full collection."""
     attrs = {"task": task, "collector_version": version, "seed": seed, "episodes": episodes,
-             "horizon": envs.make(task)[0].episode_length}
+             "horizon": envs.make(task)[0].episode_length, "physics_version": physics}
     return make_dataset(np.zeros((episodes, 2, 3)), np.zeros((episodes, 2, 2)),
                         np.ones((episodes, 2)), np.zeros((episodes, 2)), np.full(episodes, 2),
                         attrs=attrs)
@@ -207,6 +235,10 @@ def test_ensure_dataset_reuses_and_recollects(tmp_path, monkeypatch):
     assert calls == [("PointCircle1", 6, 0)]
     with h5py.File(path) as f:
         assert f.attrs["collector_version"] == COLLECTOR_VERSION and f.attrs["episodes"] == 6
+    write_dataset(path, fake_data(physics=envs.PHYSICS_VERSION - 1, episodes=50))  # old dynamics
+    calls.clear()
+    ensure_dataset("PointCircle1", 6, seed=0)
+    assert calls == [("PointCircle1", 6, 0)]
 
 
 def test_bad_input_errors(tmp_path):

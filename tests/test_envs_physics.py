@@ -9,6 +9,7 @@ from env_helpers import hold
 
 import envs
 from envs.robots import CAR, POINT, planar_sensors
+from envs.rollout import uniform_policy
 
 SENSORS = """<sensor><accelerometer site="agent"/><velocimeter site="agent"/><gyro site="agent"/>
 <magnetometer site="agent"/></sensor></mujoco>"""
@@ -43,6 +44,30 @@ def test_action_saturates_at_force_limit():
     b = hold("CarCircle1", (1.0, 1.0), 1.0)
     np.testing.assert_array_equal(a.data.qvel, b.data.qvel)
     assert _speed(hold("CarCircle1", (0.01, 0.01), 1.0)) < 0.7 * _speed(b)
+
+
+def test_car_random_action_drift_matches_reference():
+    """Under uniform random (saturating, so bang-bang) actions the reference car drifts forward:
+    native MuJoCo on Safety-Gymnasium's car.xml, 200 episodes of 500 env steps, moves its origin
+    a median 1.58 m (quartiles 1.34, 1.84), toward the caster (body -y)."""
+    env, params = envs.make("CarCircle1")
+
+    def drift(key):
+        k_reset, k_act = jax.random.split(key)
+        state = env.reset(k_reset, params)
+
+        def body(s, k):
+            return env.step(s, uniform_policy(k, s), params), None
+
+        end, _ = jax.lax.scan(body, state, jax.random.split(k_act, 500))
+        yaw = state.data.qpos[2]
+        rt = jnp.array([[jnp.cos(yaw), jnp.sin(yaw)], [-jnp.sin(yaw), jnp.cos(yaw)]])
+        return rt @ (end.data.qpos[:2] - state.data.qpos[:2])  # in the starting body frame
+
+    moved = np.asarray(jax.jit(jax.vmap(drift))(jax.random.split(jax.random.PRNGKey(3), 64)))
+    dist = np.linalg.norm(moved, axis=1)
+    assert np.median(dist) == pytest.approx(1.58, rel=0.2)
+    assert (moved[:, 1] < 0).mean() > 0.9  # forward (reference: 199 of 200)
 
 
 def test_dynamics_scales_shift_the_robot():

@@ -151,15 +151,12 @@ def test_pushing_a_vase_costs_in_level_2_only():
 
 @pytest.mark.parametrize("task", ["CarGoal", "CarCircle", "PointCircle"])
 def test_random_policy_costs_more_on_level_2(task):
-    # Random-policy costs are heavy-tailed (a robot parked in a hazard costs every step).
+    # Random-policy costs are heavy-tailed (a robot parked in a hazard costs every step), so a
+    # batch of episodes is compared; both levels see the same keys.
     keys = jax.random.split(jax.random.PRNGKey(11), 128)
     env, p1 = envs.make(task + "1")
     _, p2 = envs.make(task + "2")
     run = batch_episodes(task + "1", env.episode_length)
     c1, c2 = np.asarray(run(keys, p1)["cost"]), np.asarray(run(keys, p2)["cost"])
+    assert c2.mean() > c1.mean(), f"level-2 cost {c2.mean():.1f} <= {c1.mean():.1f}"
     assert (c2 > 0).mean() > (c1 > 0).mean()  # more episodes pay any cost on level 2
-    if task != "CarGoal":
-        # Known gap (docs/ENVIRONMENTS.md): our Car drifts less than the reference's under
-        # random actions, so on CarGoal the mean random cost of level 2 (sparser hazards,
-        # vases rarely reached) is not reliably above level 1's; the share above is.
-        assert c2.mean() > c1.mean(), f"level-2 cost {c2.mean():.1f} <= {c1.mean():.1f}"

@@ -2,12 +2,15 @@
 
 Each task has one policy family: a pure function `policy(knobs, state, spent, key) -> action`
 steered by a few continuous knobs drawn once per episode (`sample_knobs`). Every episode has a
-cost `budget`: while the cost spent so far is under it, the robot is *reckless* (it ignores the
-hazards or walls and drives at full agility); once it is spent, the robot is *careful* (it avoids
-them and drives slower). Budgets of 0 give careful episodes, large ones reckless episodes, and the
-other knobs (speed, steering gain, look-ahead, noise, avoidance strength and clearance, caution,
-target circle radius) spread the returns at every cost, from careful-and-poor to
-reckless-and-good.
+cost `budget` and a `spread`: the budget is meant to be spent on a schedule that rises linearly
+to all of it at `spread` of the episode (`schedule`). On Circle the robot is *reckless* (it runs
+a wide circle through the walls at full agility) while behind its schedule; on Goal while budget
+is left (it ignores the hazards, and detours through one while behind schedule). Otherwise it
+is *careful* (it avoids them and drives slower). So the cost-to-go is positive over much of a
+budgeted episode and says how aggressively to act, as in data of policies trained under
+different cost limits. Budgets of 0 give careful episodes, and the other knobs (speed, steering
+gain, look-ahead, noise, avoidance strength and clearance, caution, target circle radius) spread
+the returns at every cost, from careful-and-poor to reckless-and-good.
 
 Policies read the true pose (`state.data.qpos[:3]`, `qvel[:2]`) and the task layout
 (`state.task`), never the observation, plus `spent`, the episode's cost so far (the collector
@@ -142,10 +145,12 @@ class GoalFamily:
       noise: std of Gaussian noise on the (forward, turn) commands, every step.
       budget: cost steps the episode may spend recklessly; 0 with probability `p_careful`, else
         skewed toward the low end (see `sample_knobs`).
-      pace: cost steps per step that a reckless robot keeps up: when its spending falls behind
-        `pace * t`, it detours through the nearest hazard (or dwells in it). Without this, a
-        reckless episode in an open layout (goals are placed clear of hazards) would cost nothing,
-        and the best low-cost returns would all be reckless ones.
+      spread: fraction of the episode over which the budget is scheduled (see `schedule`). Until
+        the budget is spent the robot is reckless (straight for the goal, full agility) and,
+        while behind the schedule, detours through the hazard that costs the least detour (or
+        dwells in it). Without the detour, a reckless episode in an open layout (goals are
+        placed clear of hazards) would cost nothing, and the best low-cost returns would all be
+        reckless ones.
       avoid: careful: weight of the avoidance field against the unit pull toward the goal (at
         least 1, so that at full strength the field never points into an obstacle).
       clearance: careful: m beyond an obstacle's edge where avoidance starts; it reaches full
@@ -163,12 +168,12 @@ class GoalFamily:
     turn_gain: Range = (2.0, 8.0)
     lookahead: Range = (0.0, 0.4)
     noise: Range = (0.0, 0.5)
-    budget: Range = (5.0, 250.0)
-    pace: Range = (0.015, 0.08)
+    budget: Range = (3.0, 200.0)
+    spread: Range = (0.1, 1.0)
     avoid: Range = (1.0, 2.5)
     clearance: Range = (-0.1, 0.4)
     caution: Range = (0.3, 0.7)
-    p_careful: float = 0.4
+    p_careful: float = 0.15
     ramp: float = 0.25
     zone: float = 0.6
 
@@ -188,6 +193,8 @@ class CircleFamily:
       speed, turn_gain, lookahead, noise: as in `GoalFamily`.
       budget: cost steps the episode may spend recklessly; 0 with probability `p_careful`, else
         skewed toward the low end (see `sample_knobs`).
+      spread: fraction of the episode over which the budget is scheduled: the robot runs the
+        wide circle while behind the schedule (see `schedule`), the careful one otherwise.
       lead: rad, how far ahead (in polar angle) the chased point is. Chasing a point ahead cuts
         inside the circle: the robot runs a smaller one (about radius * cos(lead)).
       reach: reckless: m, radius of the circle run (always beyond the walls at 1.125: a reckless
@@ -207,13 +214,14 @@ class CircleFamily:
     turn_gain: Range = (2.0, 8.0)
     lookahead: Range = (0.0, 0.4)
     noise: Range = (0.0, 0.5)
-    budget: Range = (5.0, 250.0)
+    budget: Range = (3.0, 200.0)
+    spread: Range = (0.1, 1.0)
     lead: Range = (0.3, 0.8)
     reach: Range = (1.25, 1.75)
     radius: Range = (0.6, 1.8)
     wall: Range = (0.8, 1.5)
     caution: Range = (0.4, 0.9)
-    p_careful: float = 0.4
+    p_careful: float = 0.15
     zone: float = 0.6
 
 
@@ -259,14 +267,24 @@ def sample_knobs(key: jax.Array, task: str, n: int,
 
 # --- policies -------------------------------------------------------------------------------
 
-def goal_policy(drive: Drive, params: EnvParams, fam: GoalFamily = GoalFamily()) -> Policy:
-    """Goal family: reckless, head straight for the goal (through a hazard when behind `pace`);
-    careful, head for it through an avoidance field around hazards (and vases where they cost).
+def schedule(knobs: Knobs, steps: jax.Array, horizon: int) -> jax.Array:
+    """Cost steps the episode should have spent by step `steps`: the budget times
+    min(1, (steps + 1) / (spread * horizon)), a ramp reaching the whole budget at `spread` of the
+    episode (`horizon` steps)."""
+    ramp = (steps + 1.0) / (knobs["spread"] * horizon)
+    return knobs["budget"] * jnp.minimum(ramp, 1.0)
+
+
+def goal_policy(drive: Drive, params: EnvParams, horizon: int,
+                fam: GoalFamily = GoalFamily()) -> Policy:
+    """Goal family: reckless (budget left), head straight for the goal (through a hazard when
+    behind the cost schedule); careful, head for it through an avoidance field around hazards
+    (and vases where they cost).
 
     In the field each obstacle within reach pushes the desired direction away from itself, and
     sideways as much as it blocks the way to the goal, with a weight growing from 0 at
     `clearance` beyond its edge to `avoid` at `ramp` closer; obstacles beyond the goal are
-    ignored. About 20 distance computations a step.
+    ignored. About 20 distance computations a step. `horizon`: the episode length in steps.
     """
 
     def policy(knobs: Knobs, state: State, spent: jax.Array, key: jax.Array) -> jax.Array:
@@ -308,15 +326,15 @@ def goal_policy(drive: Drive, params: EnvParams, fam: GoalFamily = GoalFamily())
         exit_dir = jnp.sum(depth[:, None] * away, axis=0) + 0.01 * forward_dir
         careful_dir = jnp.where(inside, exit_dir, careful_dir)
 
-        # Reckless: straight for the goal, or, when behind pace, via the hazard that costs the
-        # least detour (inside one, that is the one it is in: it dwells until back on pace).
+        # Reckless (budget left): straight for the goal at full agility, or, when behind
+        # schedule, via the hazard that costs the least detour (inside one, that is the one it
+        # is in: it dwells until back on schedule). The schedule spreads the cost over the
+        # episode, so the cost-to-go stays informative.
         detour = dist + jnp.linalg.norm(goal - centres, axis=-1) - goal_dist
         bait = centres[jnp.argmin(jnp.where(is_hazard > 0, detour, jnp.inf))]
-        behind = spent < knobs["pace"] * state.info["steps"]
-        reckless_dir = jnp.where(behind, bait - p, to_goal)
-
+        behind = spent < schedule(knobs, state.info["steps"], horizon)
         reckless = spent < knobs["budget"]
-        desired = jnp.where(reckless, reckless_dir, careful_dir)
+        desired = jnp.where(reckless, jnp.where(behind, bait - p, to_goal), careful_dir)
         forward, turn = steer(drive, heading, desired, knobs["speed"], knobs["turn_gain"])
         closeness = jnp.max(jnp.clip(1.0 - edge / fam.zone, 0.0, 1.0) * active)
         slow = (1.0 - knobs["caution"]) * (1.0 - 0.5 * closeness)
@@ -330,18 +348,20 @@ def goal_policy(drive: Drive, params: EnvParams, fam: GoalFamily = GoalFamily())
     return policy
 
 
-def circle_policy(drive: Drive, params: EnvParams, fam: CircleFamily = CircleFamily()) -> Policy:
-    """Circle family: chase a point running counter-clockwise on a circle: reckless, a wide one
-    through the walls; careful, a chosen one softly clamped inside the costly walls, slower.
+def circle_policy(drive: Drive, params: EnvParams, horizon: int,
+                  fam: CircleFamily = CircleFamily()) -> Policy:
+    """Circle family: chase a point running counter-clockwise on a circle: reckless (behind the
+    cost schedule), a wide one through the walls; careful, a chosen one softly clamped inside the
+    costly walls, slower.
 
     The chased point sits `lead` rad ahead of the polar angle of the robot's extrapolated
-    position.
+    position. `horizon`: the episode length in steps.
     """
 
     def policy(knobs: Knobs, state: State, spent: jax.Array, key: jax.Array) -> jax.Array:
         xy, heading, vel = pose(drive, state)
         p = xy + knobs["lookahead"] * vel
-        careful = spent >= knobs["budget"]
+        careful = spent >= schedule(knobs, state.info["steps"], horizon)
         angle = jnp.arctan2(p[1], p[0]) + knobs["lead"]
         # Chasing a point ahead cuts inside the circle (to about radius * cos(lead)); the
         # reckless chase corrects for it, so that its `reach` is the circle it really runs.
@@ -377,11 +397,12 @@ def make_policy(task: str, params: EnvParams | None = None,
     in [-1, 1]^2.
     """
     fam = family(task) if fam is None else fam
-    params = envs.make(task)[1] if params is None else params
+    env, own_params = envs.make(task)
+    params = own_params if params is None else params
     drive = robot_drive(task)
     if isinstance(fam, GoalFamily):
-        return goal_policy(drive, params, fam)
-    return circle_policy(drive, params, fam)
+        return goal_policy(drive, params, env.episode_length, fam)
+    return circle_policy(drive, params, env.episode_length, fam)
 
 
 __all__ = [
@@ -399,5 +420,6 @@ __all__ = [
     "pose",
     "robot_drive",
     "sample_knobs",
+    "schedule",
     "steer",
 ]

@@ -32,7 +32,7 @@ from safecdt_jax.data.dsrl import write_dataset
 
 # Bump whenever the behaviour policies, their knob ranges or the collection loop change: cached
 # data sets written by another version are collected again.
-COLLECTOR_VERSION = 2
+COLLECTOR_VERSION = 3
 DEFAULT_EPISODES = 1000  # as DSRL's data sets (>= 1000 episodes per task)
 DEFAULT_CHUNK = 100  # episodes per compiled call: ~29 MB of CarGoal observations
 
@@ -114,6 +114,7 @@ def collect(key: jax.Array, task: str, episodes: int, chunk: int = DEFAULT_CHUNK
         "task": task,
         "env_params": env_params_attrs(task),
         "collector_version": COLLECTOR_VERSION,
+        "physics_version": envs.PHYSICS_VERSION,
         "behaviour": type(fam).__name__,
         "behaviour_family": dataclasses.asdict(fam),
         "episodes": episodes,
@@ -164,12 +165,13 @@ def file_attrs(path: str | os.PathLike) -> dict | None:
 
 
 def is_current(path: str | os.PathLike, task: str, episodes: int, seed: int) -> bool:
-    """Whether `path` holds `task` data from this collector version and `seed`, with at least
-    `episodes` full-length episodes."""
+    """Whether `path` holds `task` data from this collector and physics version and `seed`, with
+    at least `episodes` full-length episodes."""
     attrs = file_attrs(path)
     if attrs is None:
         return False
     return (attrs.get("task") == task and attrs.get("collector_version") == COLLECTOR_VERSION
+            and attrs.get("physics_version") == envs.PHYSICS_VERSION
             and attrs.get("seed") == seed and int(attrs.get("episodes", 0)) >= episodes
             and attrs.get("horizon") == envs.make(task)[0].episode_length)
 
