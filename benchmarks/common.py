@@ -61,10 +61,13 @@ def stats(xs: list[float]) -> dict:
     return {"median": median(xs), "min": min(xs), "max": max(xs), "n": len(xs)}
 
 
-def pin_threads(n: int) -> None:
-    """Limits JAX (XLA's CPU client) and BLAS/OpenMP in processes started later to `n` threads.
+def pin_threads(n: int) -> list[int]:
+    """Limits this process and the processes it starts later to `n` CPU cores and threads.
 
-    Must run before JAX runs anything: XLA reads its flags when the CPU client is created.
+    XLA's flags alone do not hold XLA to one thread (its CPU runtime still runs some work on a
+    second thread), so every thread of this process is also pinned to `n` cores; child
+    processes inherit that. Must run before JAX runs anything: XLA reads its flags when the CPU
+    client is created. Returns the cores used.
     """
     from jax._src import xla_bridge
 
@@ -75,3 +78,7 @@ def pin_threads(n: int) -> None:
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {flags}".strip()
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "BENCH_THREADS"):
         os.environ[var] = str(n)
+    cores = sorted(os.sched_getaffinity(0))[-n:]
+    for tid in os.listdir("/proc/self/task"):  # threads that exist already (e.g. BLAS pools)
+        os.sched_setaffinity(int(tid), cores)
+    return cores

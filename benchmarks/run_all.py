@@ -30,6 +30,9 @@ WORKER = Path(__file__).resolve().parent / "peers" / "worker.py"
 TASKS = ("CarGoal1", "CarGoal2", "CarCircle2", "PointCircle2")
 SIZES = {"CarGoal": (72, 2, 1000), "CarCircle": (40, 2, 500), "PointCircle": (28, 2, 500)}
 DEPLOY_TASK, SEEDS, EPISODES, TARGET = "CarGoal2", 15, 50, (30.0, 20.0)  # OSRL's CarGoal2 first
+# CPU seconds per wall second of every timed call, per side: the check that both sides really ran
+# on the same number of threads (1.0 = one thread busy the whole time).
+CPU_PER_WALL: dict[str, list[float]] = {"ours": [], "safety-gymnasium": [], "osrl": []}
 
 
 class Peer:
@@ -48,6 +51,8 @@ class Peer:
         if not line:
             raise RuntimeError(f"peer worker {self.name} died; see its log")
         answer = json.loads(line)
+        if cmd not in ("versions", "flops"):
+            CPU_PER_WALL[self.name].append(answer["cpu_per_wall"])
         if not answer.pop("ok"):
             raise RuntimeError(f"peer {self.name}, {cmd}: {answer['error']}")
         return answer
@@ -70,7 +75,9 @@ def alternate(peer_run, our_runs: dict, repeats: int) -> dict:
     for _ in range(repeats):
         out["peer"].append(peer_run())
         for k, run in our_runs.items():
+            wall, cpu = time.perf_counter(), time.process_time()
             out[k].append(run())
+            CPU_PER_WALL["ours"].append((time.process_time() - cpu) / (time.perf_counter() - wall))
     return out
 
 
@@ -224,7 +231,9 @@ def facts(peer_setup: list[dict], workers: dict, threads: int, started: float) -
     return {"machine": {**machine(), "cpu_model": cpu}, "threads": threads,
             "xla_flags": os.environ.get("XLA_FLAGS", ""), "peer_setup": peer_setup,
             "peer_versions": {k: w("versions") for k, w in workers.items()},
-            "loadavg_end": os.getloadavg(), "minutes": (time.perf_counter() - started) / 60}
+            "loadavg_end": os.getloadavg(), "minutes": (time.perf_counter() - started) / 60,
+            "cores": sorted(os.sched_getaffinity(0)),
+            "cpu_per_wall": {k: stats(v) for k, v in CPU_PER_WALL.items() if v}}
 
 
 def main() -> None:
@@ -246,10 +255,11 @@ def main() -> None:
     if args.render_only:
         write_markdown(json.loads(Path(args.json).read_text()), args.out)
         return
-    pin_threads(args.threads)  # before JAX creates its CPU client; workers inherit the env
+    pin_threads(args.threads)  # before JAX creates its CPU client; workers inherit it
     started = time.perf_counter()
     load_start = os.getloadavg()
     peer_setup = ([] if args.skip_setup else setup.ensure_all())
+    setup.ROOT.mkdir(exist_ok=True)
     setup.ROOT.mkdir(exist_ok=True)
     log = setup.ROOT / "workers.log"  # what the peers print (git-ignored)
     log.write_text("")

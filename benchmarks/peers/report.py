@@ -18,8 +18,10 @@ def _x(st: dict) -> str:
 def _header(p: dict) -> str:
     m = p["machine"]
     sg, osrl = p["peer_versions"]["safety-gymnasium"], p["peer_versions"]["osrl"]
-    setup_rows = [[s["name"], f"`{s['path']}`", f"{s['size_mb']:,} MB",
-                   f"{s['install_s']:.0f} s" if s.get("installed_now") else "already present"]
+    setup_rows = [[s["name"], f"`.peers/{s['name']}`", f"{s['size_mb']:,} MB",
+                   f"{s['install_s']:.0f} s" if s.get("installed_now") else
+                   f"present ({s['install_s']:.0f} s when installed)" if s.get("install_s")
+                   else "already present"]
                   for s in p["peer_setup"]] or [["(skipped with --skip-setup)", "", "", ""]]
     return "\n".join([
         "# Benchmarks: safecdt-jax against the paper's own stack",
@@ -35,7 +37,10 @@ def _header(p: dict) -> str:
         f"- **Threads:** {p['threads']} per side. Ours: `XLA_FLAGS={p['xla_flags']}`. Peers: "
         f"`OMP_NUM_THREADS={p['threads']}`, `torch.set_num_threads({p['threads']})`, Safety-"
         "Gymnasium's vector env in its synchronous form (the asynchronous one forks one process "
-        "per env, which is not the same thread count).",
+        f"per env, which is not the same thread count). Both sides' processes are pinned to "
+        f"core(s) {p['cores']} (XLA's flags alone leave some work on a second thread). CPU "
+        "seconds per wall second over the timed calls (1.00 = one thread busy throughout): "
+        + "; ".join(f"{k} {_s(v, '.2f')}" for k, v in p["cpu_per_wall"].items()) + ".",
         f"- **Ours:** Python {m['python']}, jax {m['jax']}, mujoco (MJX) {m['mujoco']}, "
         f"backend {m['backend']}.",
         f"- **Safety-Gymnasium venv:** Python {sg['python']}, safety-gymnasium "
@@ -195,7 +200,13 @@ CAVEATS = """## Caveats
   (no file of theirs is changed). Its env is Safety-Gymnasium's gymnasium-API task with rewards
   scaled by 0.1, as DSRL wraps it; DSRL's own wrappers are not installed (DSRL pulls in other
   simulators), which if anything makes the peer slightly faster.
+- Our zero-shot call ran `15 x episodes` episodes side by side (75 with the default
+  `--episodes 5`), not all 750; the Safe-CDT sweep ran 15 seeds x that many episodes in
+  sequence. Both are scaled linearly to 50 episodes per seed; `--episodes 50` times the whole
+  deployment in one call (several minutes per call on this CPU).
 - OSRL's training step is timed without its DataLoader; ours includes sampling the windows.
+- The two libraries' single-thread matmul rates differ a lot on this CPU (section 5). That is
+  part of what a user of either stack gets, so it is not factored out of the ratios.
 - Safety-Gymnasium's vector env is timed in its synchronous form, on one core like the rest.
 - The machine was shared with other jobs; medians of alternated pairs and per-pair ratios are
   used for that reason, and the ranges show the spread.

@@ -71,9 +71,11 @@ def ensure(name: str, root: Path = ROOT, force: bool = False) -> dict:
     version, steps = SPECS[name]
     target, marker = root / name, root / name / ".done"
     spec = repr(SPECS[name])
+    timing = target / ".install_s"  # kept so that later runs can still report it
     if not force and marker.exists() and marker.read_text() == spec:
+        earlier = float(timing.read_text()) if timing.exists() else None
         return {"name": name, "path": str(target), "installed_now": False,
-                "size_mb": round(_size_mb(target))}
+                "install_s": earlier, "size_mb": round(_size_mb(target))}
     shutil.rmtree(target, ignore_errors=True)
     t = time.perf_counter()
     subprocess.run([find_python(version), "-m", "venv", str(target)], check=True)
@@ -89,6 +91,7 @@ def ensure(name: str, root: Path = ROOT, force: bool = False) -> dict:
     if cuda:
         raise RuntimeError(f"CUDA packages were installed into {name}: {cuda}")
     seconds = time.perf_counter() - t
+    timing.write_text(f"{seconds:.1f}")
     marker.write_text(spec)
     return {"name": name, "path": str(target), "installed_now": True,
             "install_s": round(seconds, 1), "size_mb": round(_size_mb(target))}

@@ -263,10 +263,13 @@ def main() -> None:
         torch.set_num_threads(THREADS)
     for line in sys.stdin:
         request = json.loads(line)
+        wall, cpu = time.perf_counter(), time.process_time()
         try:
             result = {"ok": True, **COMMANDS[request.pop("cmd")](**request)}
         except Exception as e:  # reported to the caller, which decides what to do
             result = {"ok": False, "error": f"{type(e).__name__}: {e}"}
+        # CPU seconds of all this process's threads per wall second: ~1.0 = one busy thread.
+        result["cpu_per_wall"] = (time.process_time() - cpu) / (time.perf_counter() - wall)
         answers.write(json.dumps(result) + "\n")
         answers.flush()
 
