@@ -4,11 +4,12 @@ import json
 import os
 import platform
 import statistics
-import tempfile
 import time
 from pathlib import Path
 
 import jax
+
+from safecdt_jax.data.dataset import atomic_path
 
 
 def machine() -> dict:
@@ -41,12 +42,8 @@ def median(xs: list[float]) -> float:
 
 def write_json(path: str | Path, payload: dict) -> None:
     """Writes `payload` to `path` atomically (temp file in the same folder, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
+    with atomic_path(path, suffix=".json") as tmp, open(tmp, "w") as f:
         json.dump(payload, f, indent=2)
-    os.replace(tmp, path)
 
 
 def markdown_table(headers: list[str], rows: list[list]) -> str:

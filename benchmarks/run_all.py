@@ -24,6 +24,7 @@ import jax
 from benchmarks.common import machine, pin_threads, stats, write_json
 from benchmarks.peers import setup
 from benchmarks.peers.report import render
+from safecdt_jax.data.dataset import atomic_path
 
 ROOT = Path(__file__).resolve().parents[1]
 WORKER = Path(__file__).resolve().parent / "peers" / "worker.py"
@@ -282,9 +283,8 @@ def main() -> None:
 
 def write_markdown(payload: dict, out: str) -> None:
     """Renders the report and replaces `out` atomically."""
-    tmp = Path(out).with_suffix(".tmp")
-    tmp.write_text(render(payload))
-    os.replace(tmp, out)
+    with atomic_path(out, suffix=".md") as tmp:
+        Path(tmp).write_text(render(payload))
     print(f"wrote {out}")
 
 
