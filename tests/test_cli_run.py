@@ -54,3 +54,22 @@ def test_run_bad_input_is_one_clear_line(cache, flag, value, message):
     assert result.exit_code == 1
     assert message in result.output
     assert "Traceback" not in result.output
+
+
+def test_deployment_uses_the_checkpoints_token_scales(tmp_path):
+    # A model only understands the RTG / CTG token scales it was trained with: the deployment
+    # takes them from the checkpoint, whatever its own config says.
+    import jax
+
+    from safecdt_jax.data.collect import collect, write_collected
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.deploy.job import run_deployment
+    from safecdt_jax.pretrain import default_pretrain, pretrain
+
+    data = write_collected(tmp_path / "PointCircle1.hdf5",
+                           collect(jax.random.PRNGKey(0), "PointCircle1", 4, horizon=20))
+    cfg = default_pretrain("tiny", steps=2, chunk=2, reward_scale=0.2, cost_scale=0.25)
+    ckpt = pretrain(data, tmp_path / "ckpt", preset="tiny", config=cfg, progress=False).path
+    res = run_deployment(ckpt, "PointCircle2", ["zero_shot"], [30.0], 1,
+                         cfg=DeployConfig(episodes=1, horizon=5), progress=False)
+    assert (res["deploy_config"]["reward_scale"], res["deploy_config"]["cost_scale"]) == (0.2, 0.25)

@@ -123,7 +123,7 @@ def test_knobs_in_ranges_and_budget_mixture():
 def car_action(goal_offset):
     """The Car's action at rest at the origin, travelling toward -y (yaw 0), with the goal at
     `goal_offset`: careful (budget 0, no hazards near), and reckless (behind its cost schedule,
-    with the one hazard it can detour through placed on the goal)."""
+    with a hazard on the goal, which it ignores)."""
     policy = make_policy("CarGoal1")
     goal = jnp.asarray(goal_offset, jnp.float32)
     far = jnp.full((10, 2), 1e3)
@@ -148,6 +148,23 @@ def test_car_turns_through_wheel_difference():
     for a in car_action([0.0, -1.0]):  # goal straight ahead: both wheels forward, equal
         assert a[0] > 0 and a[0] == pytest.approx(a[1], abs=1e-6)
     assert CAR_DRIVE.saturation == (0.02, 0.02)
+
+
+def test_goal_reckless_drives_through_a_hazard_the_careful_one_avoids():
+    # A hazard halfway to a goal straight ahead (1.2 m toward -y). Behind its schedule the Car
+    # drives straight at it (equal wheels); on schedule (budget 0) it steers around it.
+    policy = make_policy("CarGoal1")
+    far = jnp.full((10, 2), 1e3)
+    knobs = {k: jnp.float32(np.mean(v)) for k, v in
+             sample_knobs(jax.random.PRNGKey(0), "CarGoal1", 64).items()}
+    knobs |= {"noise": jnp.float32(0.0), "clearance": jnp.float32(0.3)}
+    state = fake_state(jnp.zeros(3), jnp.zeros(3), jnp.asarray([0.0, -1.2]),
+                       far.at[0].set(jnp.asarray([0.0, -0.6])), far, jnp.int32(0))
+    reckless, careful = (np.asarray(policy(dict(knobs, budget=jnp.float32(b)), state,
+                                           jnp.float32(0.0), jax.random.PRNGKey(0)))
+                         for b in (50.0, 0.0))
+    assert reckless[0] > 0 and reckless[0] == pytest.approx(reckless[1], abs=1e-6)
+    assert abs(careful[0] - careful[1]) > 0.1 * CAR_DRIVE.saturation[0]
 
 
 @pytest.fixture(scope="module")

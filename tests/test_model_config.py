@@ -42,6 +42,8 @@ def test_defaults_are_osrl():
 
 
 def test_preset_overrides_and_replace():
+    # cpu reads OSRL's cost transform scaled by 0.1 (pretraining's cost_scale 0.1): 5 - 0.1 CTG.
+    assert CDTConfig.preset("cpu", **CAR_GOAL).cost_offset == 5.0
     c = CDTConfig.preset("cpu", **CAR_GOAL, seq_len=20)
     assert c.seq_len == 20 and c.embed_dim == 64
     assert c.replace(num_layers=5).num_layers == 5

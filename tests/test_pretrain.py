@@ -68,8 +68,9 @@ def _assert_trees_equal(a, b):
 
 def test_config_defaults_and_validation():
     cpu = default_pretrain("cpu")
-    assert cpu.relabel and (cpu.c0, cpu.reward_scale, cpu.cost_scale) == (70.0, 0.1, 1.0)
-    assert default_pretrain("osrl").batch_size == 2048
+    assert cpu.relabel and (cpu.c0, cpu.reward_scale, cpu.cost_scale) == (70.0, 0.1, 0.1)
+    osrl = default_pretrain("osrl")
+    assert (osrl.batch_size, osrl.reward_scale, osrl.cost_scale) == (2048, 0.1, 1.0)
     assert default_pretrain("cpu", steps=7).steps == 7
     bad = [dict(steps=0), dict(batch_size=-1), dict(chunk=1.5), dict(seed=-1), dict(c0=0.0),
            dict(reward_scale=-0.1), dict(checkpoint_every=-5), dict(relabel=1)]

@@ -112,7 +112,9 @@ def run(
                          lambda bar: ensure_dataset(source, n_data, seed, progress=bar))
         typer.echo(f"      {data}")
         typer.echo(f"[2/3] pretrained CDT: preset {preset}")
-        ckpt = ensure_checkpoint(data, source, preset, steps, seed=seed)
+        # The cache is run's own: a checkpoint of older data (e.g. recollected after a
+        # collector change) or of another config is retrained, not an error.
+        ckpt = ensure_checkpoint(data, source, preset, steps, seed=seed, overwrite=True)
         typer.echo(f"      {ckpt}")
         typer.echo(f"[3/3] deployment: {target}, {variant}, B={budget}, {seeds} seeds x "
                    f"{episodes} episodes")

@@ -3,14 +3,16 @@
 Each task has one policy family: a pure function `policy(knobs, state, spent, key) -> action`
 steered by a few continuous knobs drawn once per episode (`sample_knobs`). Every episode has a
 cost `budget` and a `spread`: the budget is meant to be spent on a schedule that rises linearly
-to all of it at `spread` of the episode (`schedule`). On Circle the robot is *reckless* (it runs
-a wide circle through the walls at full agility) while behind its schedule; on Goal while budget
-is left (it ignores the hazards, and detours through one while behind schedule). Otherwise it
-is *careful* (it avoids them and drives slower). So the cost-to-go is positive over much of a
-budgeted episode and says how aggressively to act, as in data of policies trained under
-different cost limits. Budgets of 0 give careful episodes, and the other knobs (speed, steering
-gain, look-ahead, noise, avoidance strength and clearance, caution, target circle radius) spread
-the returns at every cost, from careful-and-poor to reckless-and-good.
+to all of it at `spread` of the episode (`schedule`; by default spread 1, a constant pace). The
+robot is *reckless* while behind its schedule: on Circle it runs a wide circle through the
+walls, on Goal it drives straight for the goal through whatever lies in the way, both at full
+agility. Otherwise it is *careful*: it avoids the costly regions and drives slower. Paced this
+way, an episode's share of reckless steps is set by its cost rate, which its cost-to-go reveals
+at every step (about rate x steps left), as in data of policies trained under different cost
+limits; a budget spent early would instead leave most steps with a cost-to-go of 0 and let the
+model pick its mode from the return target. Budgets of 0 give careful episodes, and the other
+knobs (speed, steering gain, look-ahead, noise, avoidance strength and clearance, caution,
+target circle radius) spread the returns at every cost.
 
 Policies read the true pose (`state.data.qpos[:3]`, `qvel[:2]`) and the task layout
 (`state.task`), never the observation, plus `spent`, the episode's cost so far (the collector
@@ -145,12 +147,11 @@ class GoalFamily:
       noise: std of Gaussian noise on the (forward, turn) commands, every step.
       budget: cost steps the episode may spend recklessly; 0 with probability `p_careful`, else
         skewed toward the low end (see `sample_knobs`).
-      spread: fraction of the episode over which the budget is scheduled (see `schedule`). Until
-        the budget is spent the robot is reckless (straight for the goal, full agility) and,
-        while behind the schedule, detours through the hazard that costs the least detour (or
-        dwells in it). Without the detour, a reckless episode in an open layout (goals are
-        placed clear of hazards) would cost nothing, and the best low-cost returns would all be
-        reckless ones.
+      spread: fraction of the episode over which the budget is scheduled (see `schedule`); 1,
+        a constant pace, by default. While behind the schedule the robot is reckless: straight
+        for the goal at full agility, through any hazard on the way. (Collector v3 also
+        detoured through hazards to keep up with the schedule; a CDT trained on that data
+        averaged the goal and the hazard directions and reached no goal: return ~0.)
       avoid: careful: weight of the avoidance field against the unit pull toward the goal (at
         least 1, so that at full strength the field never points into an obstacle).
       clearance: careful: m beyond an obstacle's edge where avoidance starts; it reaches full
@@ -168,8 +169,8 @@ class GoalFamily:
     turn_gain: Range = (2.0, 8.0)
     lookahead: Range = (0.0, 0.4)
     noise: Range = (0.0, 0.5)
-    budget: Range = (3.0, 200.0)
-    spread: Range = (0.1, 1.0)
+    budget: Range = (2.0, 120.0)
+    spread: Range = (1.0, 1.0)
     avoid: Range = (1.0, 2.5)
     clearance: Range = (-0.1, 0.4)
     caution: Range = (0.3, 0.7)
@@ -193,8 +194,9 @@ class CircleFamily:
       speed, turn_gain, lookahead, noise: as in `GoalFamily`.
       budget: cost steps the episode may spend recklessly; 0 with probability `p_careful`, else
         skewed toward the low end (see `sample_knobs`).
-      spread: fraction of the episode over which the budget is scheduled: the robot runs the
-        wide circle while behind the schedule (see `schedule`), the careful one otherwise.
+      spread: fraction of the episode over which the budget is scheduled (1, a constant pace,
+        by default): the robot runs the wide circle while behind the schedule (see
+        `schedule`), the careful one otherwise.
       lead: rad, how far ahead (in polar angle) the chased point is. Chasing a point ahead cuts
         inside the circle: the robot runs a smaller one (about radius * cos(lead)).
       reach: reckless: m, radius of the circle run (always beyond the walls at 1.125: a reckless
@@ -214,8 +216,8 @@ class CircleFamily:
     turn_gain: Range = (2.0, 8.0)
     lookahead: Range = (0.0, 0.4)
     noise: Range = (0.0, 0.5)
-    budget: Range = (3.0, 200.0)
-    spread: Range = (0.1, 1.0)
+    budget: Range = (2.0, 120.0)
+    spread: Range = (1.0, 1.0)
     lead: Range = (0.3, 0.8)
     reach: Range = (1.25, 1.75)
     radius: Range = (0.6, 1.8)
@@ -277,9 +279,8 @@ def schedule(knobs: Knobs, steps: jax.Array, horizon: int) -> jax.Array:
 
 def goal_policy(drive: Drive, params: EnvParams, horizon: int,
                 fam: GoalFamily = GoalFamily()) -> Policy:
-    """Goal family: reckless (budget left), head straight for the goal (through a hazard when
-    behind the cost schedule); careful, head for it through an avoidance field around hazards
-    (and vases where they cost).
+    """Goal family: reckless (behind the cost schedule), head straight for the goal; careful,
+    head for it through an avoidance field around hazards (and vases where they cost).
 
     In the field each obstacle within reach pushes the desired direction away from itself, and
     sideways as much as it blocks the way to the goal, with a weight growing from 0 at
@@ -326,15 +327,10 @@ def goal_policy(drive: Drive, params: EnvParams, horizon: int,
         exit_dir = jnp.sum(depth[:, None] * away, axis=0) + 0.01 * forward_dir
         careful_dir = jnp.where(inside, exit_dir, careful_dir)
 
-        # Reckless (budget left): straight for the goal at full agility, or, when behind
-        # schedule, via the hazard that costs the least detour (inside one, that is the one it
-        # is in: it dwells until back on schedule). The schedule spreads the cost over the
-        # episode, so the cost-to-go stays informative.
-        detour = dist + jnp.linalg.norm(goal - centres, axis=-1) - goal_dist
-        bait = centres[jnp.argmin(jnp.where(is_hazard > 0, detour, jnp.inf))]
-        behind = spent < schedule(knobs, state.info["steps"], horizon)
-        reckless = spent < knobs["budget"]
-        desired = jnp.where(reckless, jnp.where(behind, bait - p, to_goal), careful_dir)
+        # Reckless (behind the cost schedule): straight for the goal at full agility. The
+        # schedule spreads the cost over the episode, so the cost-to-go stays informative.
+        reckless = spent < schedule(knobs, state.info["steps"], horizon)
+        desired = jnp.where(reckless, to_goal, careful_dir)
         forward, turn = steer(drive, heading, desired, knobs["speed"], knobs["turn_gain"])
         closeness = jnp.max(jnp.clip(1.0 - edge / fam.zone, 0.0, 1.0) * active)
         slow = (1.0 - knobs["caution"]) * (1.0 - 0.5 * closeness)

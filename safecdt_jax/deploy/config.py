@@ -66,8 +66,10 @@ class DeployConfig:
             default False (deterministic forward pass): with 10 steps of 32 sequences per
             episode, dropout noise would dominate the small gradient signal, and the adapters are
             trained for exactly the forward pass the deployment uses (evaluation mode).
-        reward_scale: the RTG token is RTG * reward_scale (0.1, as in pretraining).
-        cost_scale: the CTG token is CTG * cost_scale (1.0, as in pretraining).
+        reward_scale: the RTG token is RTG * reward_scale (0.1, OSRL's). Must be the scale the
+            model was pretrained with: `run_deployment` sets it from the checkpoint.
+        cost_scale: the CTG token is CTG * cost_scale (1.0, OSRL's); set from the checkpoint
+            like `reward_scale` (the `cpu` preset trains with 0.1).
         clip_ctg: clip the rollout's cost-to-go at 0 once the budget is spent (True); False is
             OSRL's rule (it may go negative, which no training window contains).
     """

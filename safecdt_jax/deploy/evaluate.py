@@ -29,18 +29,21 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
                     episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
     """Episode returns and costs [n_targets, episodes] of checkpoint `ckpt` in `task`.
 
-    Every target runs on the same `episodes` layouts (keys from `seed`), in one jitted call.
+    Every target runs on the same `episodes` layouts (keys from `seed`), in one jitted call,
+    with the checkpoint's own token scales.
     """
     import envs
     from safecdt_jax.deploy.rollout import evaluate_targets
-    from safecdt_jax.pretrain.checkpoint import load_policy
+    from safecdt_jax.pretrain.checkpoint import load_policy, token_scales
 
     env, params = envs.make(task)
     policy = load_policy(ckpt, task=task)
+    reward_scale, cost_scale = token_scales(policy.meta)
     rets = np.array([t[0] for t in targets], np.float32)
     costs = np.array([t[1] for t in targets], np.float32)
     fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, policy.cfg, r, c,
-                                                  episodes))
+                                                  episodes, reward_scale=reward_scale,
+                                                  cost_scale=cost_scale))
     res = jax.device_get(fn(jax.random.PRNGKey(seed), rets, costs))
     return {"target_return": rets, "target_cost": costs, "returns": np.asarray(res.returns),
             "costs": np.asarray(res.costs)}

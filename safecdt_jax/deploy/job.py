@@ -75,6 +75,9 @@ def run_deployment(
 ) -> dict[str, Any]:
     """Deploy checkpoint `ckpt` into task `target` for every (variant, budget) and seed.
 
+    `cfg` (default `DeployConfig()`) sets the deployment; its token scales are replaced by the
+    checkpoint's (`token_scales`), since the model only understands the ones it was trained with.
+
     One sweep call (runs x seeds); the episodes advance in stage-sized chunks of the same
     compiled program so a progress bar can follow. Returns the results record (plain Python,
     JSON-ready): `runs`, one per (variant, budget), each with per-episode metrics [seeds][episodes]
@@ -84,7 +87,7 @@ def run_deployment(
     from safecdt_jax.deploy.config import DeployConfig, make_variant
     from safecdt_jax.deploy.loop import make_spec, seed_keys
     from safecdt_jax.deploy.sweep import stack_specs, sweep
-    from safecdt_jax.pretrain.checkpoint import load_policy
+    from safecdt_jax.pretrain.checkpoint import load_policy, token_scales
     from safecdt_jax.pretrain.run import versions
     from safecdt_jax.report.tables import summarize_runs
 
@@ -93,6 +96,8 @@ def run_deployment(
         raise ValueError(f"seeds must be >= 1, got {seeds}")
     env, env_params = envs.make(target)
     policy = load_policy(ckpt, task=target)
+    reward_scale, cost_scale = token_scales(policy.meta)
+    cfg = dataclasses.replace(cfg, reward_scale=reward_scale, cost_scale=cost_scale)
     r_ref = float(policy.meta["dataset"]["reference_return"])
     combos = list(itertools.product(variants, budgets))
     specs = stack_specs([make_spec(make_variant(v, cfg), b, r_ref) for v, b in combos])

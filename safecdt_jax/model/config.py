@@ -17,7 +17,9 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # Default demo model (175,054 parameters for CarGoal, 138,926 for CarCircle): its default
     # pretraining, 10,000 updates at batch 32 (pretrain.default_pretrain), takes 2.5-5 minutes on
     # a 2-core CPU at 14-24 ms per update; one batch-15 inference step takes ~1.5 ms.
-    "cpu": dict(embed_dim=64, num_layers=2, num_heads=4, seq_len=10),
+    # Its cost transform reads `5 - CTG * 0.1` (pretraining's `cost_scale` is 0.1 for this
+    # preset), OSRL's `50 - CTG` divided by 10: see `pretrain.config` for why.
+    "cpu": dict(embed_dim=64, num_layers=2, num_heads=4, seq_len=10, cost_offset=5.0),
     # OSRL's default CDT: 744,910 parameters for CarGoal (obs 72, act 2, episode 1000).
     "osrl": dict(embed_dim=128, num_layers=3, num_heads=8, seq_len=10),
     # The Safe-CDT paper's model: about 3.5M parameters, LoRA rank 16 on q/v -> 65,536 adapters.

@@ -120,6 +120,14 @@ def configs_from_meta(meta: dict[str, Any]) -> tuple[CDTConfig, OptimConfig, Pre
     return CDTConfig(**model), OptimConfig(**meta["optim"]), PretrainConfig(**meta["pretrain"])
 
 
+def token_scales(meta: dict[str, Any]) -> tuple[float, float]:
+    """(reward_scale, cost_scale) the checkpoint was trained with: RTG / CTG tokens are raw
+    return- / cost-to-go times these. A rollout must use the same ones, so deployment and
+    evaluation read them from here rather than from their own configs."""
+    _, _, cfg = configs_from_meta(meta)
+    return cfg.reward_scale, cfg.cost_scale
+
+
 def restore_state(
     path: str | os.PathLike, cdt_cfg: CDTConfig, optim: OptimConfig, step: int | None = None
 ) -> TrainState:
