@@ -205,3 +205,34 @@ def test_plan_task_and_default_folder(data_file, tmp_path, monkeypatch):
     spec = plan(data_file, preset="tiny")
     assert spec.out == tmp_path / "checkpoints" / "Synthetic-tiny"
     assert spec.cfg == default_pretrain("tiny") and spec.meta["n_params"] > 0
+
+
+def test_shuffle_gaps_are_zero_for_a_token_the_model_cannot_see(full_run, data_file):
+    from safecdt_jax.pretrain.diagnose import conditioning_gaps, shuffle_gaps
+
+    gaps = conditioning_gaps(full_run.path, data_file, windows=64, seed=3)
+    assert gaps == conditioning_gaps(full_run.path, data_file, windows=64, seed=3)
+    assert 0.0 <= gaps["share_ctg_positive"] <= 1.0
+    # Blind the model to its cost-to-go input (zero embedding kernel): shuffling the CTG tokens
+    # then changes nothing, while the return-to-go still matters.
+    ckpt = load_checkpoint(full_run.path)
+    blind = dict(ckpt.params, embed_cost=dict(ckpt.params["embed_cost"],
+                                              kernel=jnp.zeros_like(
+                                                  ckpt.params["embed_cost"]["kernel"])))
+    rng = np.random.default_rng(0)
+    k, b = ckpt.cfg.seq_len, 32
+    batch = {"states": rng.normal(size=(b, k, 5)).astype(np.float32),
+             "actions": rng.uniform(-1, 1, (b, k, 2)).astype(np.float32),
+             "returns_to_go": rng.uniform(0, 3, (b, k)).astype(np.float32),
+             "costs_to_go": rng.uniform(0, 20, (b, k)).astype(np.float32),
+             "costs": np.zeros((b, k), np.float32),
+             "timesteps": np.tile(np.arange(k, dtype=np.int32), (b, 1)),
+             "mask": np.ones((b, k), np.float32)}
+    out = shuffle_gaps(blind, ckpt.cfg, batch, jax.random.key(0))
+    assert out["costs_to_go"] == 0.0 and out["returns_to_go"] != 0.0
+    with pytest.raises(ValueError, match="windows must be >= 2"):
+        conditioning_gaps(full_run.path, data_file, windows=1)
+    cli = CliRunner().invoke(app, ["diagnose", "--ckpt", str(full_run.path), "--data",
+                                   str(data_file), "--windows", "64", "--seed", "3"])
+    assert cli.exit_code == 0, cli.output
+    assert f"| costs_to_go | {gaps['costs_to_go']:.5f} |" in cli.output

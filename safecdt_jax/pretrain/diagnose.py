@@ -20,6 +20,7 @@ import jax.numpy as jnp
 
 from safecdt_jax.data import sample_windows
 from safecdt_jax.data.dsrl import load_dataset
+from safecdt_jax.model import CDTConfig
 from safecdt_jax.model.loss import cdt_loss
 from safecdt_jax.pretrain.checkpoint import configs_from_meta, load_checkpoint
 from safecdt_jax.pretrain.loop import prepare_data
@@ -46,15 +47,22 @@ def conditioning_gaps(ckpt: str | os.PathLike, data_path: str | os.PathLike,
                          cfg.cost_scale)
     batch = {name: getattr(win, name) for name in ("states", "actions", "returns_to_go",
                                                    "costs_to_go", "costs", "timesteps", "mask")}
+    out = shuffle_gaps(model.params, model.cfg, batch, k_perm)
+    return {**out, "share_ctg_positive": float(jnp.mean(win.costs_to_go[:, 0] > 0))}
+
+
+def shuffle_gaps(params, cfg: CDTConfig, batch: dict, key: jax.Array) -> dict[str, float]:
+    """`{"log_likelihood": ll, token: drop, ...}` of the CDT `(params, cfg)` on the windows
+    `batch` (`cdt_loss` inputs), for each token in `TOKENS` permuted across the windows by one
+    permutation drawn from `key`; nats per action dim, evaluation mode."""
 
     @jax.jit
     def log_likelihood(b):
-        return cdt_loss(model.params, jnp.float32(0.0), model.cfg, b, None)[1]["log_likelihood"]
+        return cdt_loss(params, jnp.float32(0.0), cfg, b, None)[1]["log_likelihood"]
 
     base = float(log_likelihood(batch))
-    perm = jax.random.permutation(k_perm, windows)
-    out = {"log_likelihood": base,
-           "share_ctg_positive": float(jnp.mean(win.costs_to_go[:, 0] > 0))}
+    perm = jax.random.permutation(key, batch["mask"].shape[0])
+    out = {"log_likelihood": base}
     for name in TOKENS:
         out[name] = base - float(log_likelihood({**batch, name: batch[name][perm]}))
     return out
