@@ -45,9 +45,7 @@ def conditioning_gaps(ckpt: str | os.PathLike, data_path: str | os.PathLike,
     k_draw, k_perm = jax.random.split(jax.random.key(seed))
     win = sample_windows(k_draw, data, windows, model.cfg.seq_len, weights, cfg.reward_scale,
                          cfg.cost_scale)
-    batch = {name: getattr(win, name) for name in ("states", "actions", "returns_to_go",
-                                                   "costs_to_go", "costs", "timesteps", "mask")}
-    out = shuffle_gaps(model.params, model.cfg, batch, k_perm)
+    out = shuffle_gaps(model.params, model.cfg, win._asdict(), k_perm)  # as pretraining's batch
     return {**out, "share_ctg_positive": float(jnp.mean(win.costs_to_go[:, 0] > 0))}
 
 
