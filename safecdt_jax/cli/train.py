@@ -78,3 +78,53 @@ def diagnose(
     typer.echo("| token shuffled | log-likelihood drop (nats/dim) |\n|---|---|")
     for name in TOKENS:
         typer.echo(f"| {name} | {gaps[name]:.5f} |")
+
+
+@app.command()
+def bc(
+    data: Annotated[Path, typer.Option(exists=True, dir_okay=False,
+                                       help="DSRL-format HDF5 file.")],
+    task: Annotated[str | None, typer.Option(
+        help="Task to roll the clone out in (default: the file's task attribute).")] = None,
+    max_cost: Annotated[float | None, typer.Option(
+        min=0, help="Clone only episodes of cost <= this (BC-Safe); default: all (BC-All).")
+    ] = None,
+    steps: Annotated[int, typer.Option(min=1, help="Adam updates of 256 transitions.")] = 20_000,
+    episodes: Annotated[int, typer.Option(min=1, help="Evaluation episodes.")] = 20,
+    seed: Annotated[int, typer.Option(min=0, help="PRNG seed (init, batches, layouts).")] = 0,
+) -> None:
+    """Behaviour cloning baseline: fit a per-step MLP to the data's actions and roll it out,
+    to tell whether the data can be imitated at all (mean return and cost per episode)."""
+    import jax
+    import numpy as np
+
+    import envs
+    from safecdt_jax.data.dsrl import load_dataset
+    from safecdt_jax.data.windows import episode_costs, episode_returns
+    from safecdt_jax.pretrain.bc import BCConfig, evaluate_bc, fit_bc, select_transitions
+
+    try:
+        cfg = BCConfig(steps=steps, max_cost=max_cost, chunk=min(1_000, steps))
+        ds = load_dataset(data)
+        task_flag = task is not None
+        task = task or ds.attrs.get("task")
+        if task is None:
+            raise ValueError(f"{data} has no task attribute: pass --task")
+        if task not in envs.NAMES:  # before minutes of fitting, not after
+            raise ValueError(f"unknown task {task!r} (from {'--task' if task_flag else data}); "
+                             f"valid names: {', '.join(envs.NAMES)}")
+        n = len(select_transitions(ds, max_cost)[0])
+        keep = episode_costs(ds) <= (np.inf if max_cost is None else max_cost)
+        key = jax.random.PRNGKey(seed)
+        policy, loss = fit_bc(key, ds, cfg)
+        returns, costs = evaluate_bc(jax.random.fold_in(key, 1), task, policy, episodes)
+    except ValueError as e:  # DatasetError, an unknown task, no qualifying episode: one line
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from e
+    label = "BC-All" if max_cost is None else f"BC-Safe (cost <= {max_cost:g})"
+    typer.echo(f"{label}: {keep.sum()} episodes, {n:,} transitions; data mean return "
+               f"{episode_returns(ds)[keep].mean():.2f}, cost {episode_costs(ds)[keep].mean():.2f}")
+    typer.echo(f"fit: RMSE {np.sqrt(loss[0]):.3f} -> {np.sqrt(loss[-1]):.3f} of each action's "
+               f"range (first -> last {cfg.chunk} updates)")
+    typer.echo(f"{task}, {episodes} episodes: return {returns.mean():.2f}, cost "
+               f"{costs.mean():.2f} (max {costs.max():g}, {np.mean(costs == 0):.0%} at 0)")

@@ -1,0 +1,168 @@
+"""Behaviour cloning baselines (OSRL's BC-All and BC-Safe): is a data set imitable at all?
+
+A per-step MLP from observation to action, fitted by mean squared error, then rolled out in the
+task. It sees no return or cost target and no history, so it answers a question the CDT cannot
+answer about itself: whether the actions in the data can be cloned from the observations. With
+`max_cost` it keeps only the episodes of cost <= max_cost (BC-Safe); its rollout cost is then
+what imitation alone achieves on the safe part of the data, the floor a CDT asked for a low cost
+can hope to reach without using history. (Collector-v4 data, 20 episodes: BC-Safe at
+max_cost 0 costs 75 per episode on CarGoal1, as a `cpu` CDT trained on careful-only data does,
+37-73; on CarCircle1 it also costs 75, where the CDT, reading its context, gets 4-7 at low
+cost targets.)
+
+    policy, loss = fit_bc(jax.random.PRNGKey(0), data, BCConfig(max_cost=0.0))
+    returns, costs = evaluate_bc(jax.random.PRNGKey(1), "CarGoal1", policy, episodes=20)
+
+Units: observations standardised by the selected data's mean and std (floored at `std_floor`);
+actions learnt in units of the data's largest |action| per dimension (the Car's wheel commands
+stay within +-0.02), so the loss is a fraction of each actuator's used range, squared.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from safecdt_jax.data.dataset import Dataset
+from safecdt_jax.data.windows import episode_costs
+
+
+@dataclasses.dataclass(frozen=True)
+class BCConfig:
+    """Behaviour cloning settings.
+
+    Attributes:
+      hidden: width of each hidden ReLU layer (256).
+      layers: hidden layers (2).
+      steps: Adam updates (20,000: about 5 passes over 1,000 Goal episodes at batch 256).
+      batch: transitions per update (256), drawn uniformly with replacement.
+      lr: Adam learning rate (3e-4).
+      max_cost: keep only episodes of cost <= this (BC-Safe); None keeps all (BC-All).
+      std_floor: smallest observation std used to standardise (0.01; constant sensors).
+      chunk: updates per jitted `lax.scan` call (1,000).
+    """
+
+    hidden: int = 256
+    layers: int = 2
+    steps: int = 20_000
+    batch: int = 256
+    lr: float = 3e-4
+    max_cost: float | None = None
+    std_floor: float = 0.01
+    chunk: int = 1_000
+
+    def __post_init__(self):
+        for name in ("hidden", "layers", "steps", "batch", "chunk"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and value >= 1):
+                raise ValueError(f"BCConfig.{name} must be an integer >= 1, got {value!r}")
+        for name in ("lr", "std_floor"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"BCConfig.{name} must be positive, got {getattr(self, name)!r}")
+        if self.max_cost is not None and not self.max_cost >= 0:
+            raise ValueError(f"BCConfig.max_cost must be >= 0 or None, got {self.max_cost!r}")
+
+
+class BCPolicy(NamedTuple):
+    """A fitted clone: MLP layers [(W, b)], observation mean/std [obs_dim], action scale [act]."""
+
+    layers: list
+    obs_mean: jax.Array
+    obs_std: jax.Array
+    action_scale: jax.Array
+
+
+def bc_action(policy: BCPolicy, obs: jax.Array) -> jax.Array:
+    """The clone's action for observations [..., obs_dim], in the env's action units."""
+    x = (obs - policy.obs_mean) / policy.obs_std
+    for w, b in policy.layers[:-1]:
+        x = jax.nn.relu(x @ w + b)
+    w, b = policy.layers[-1]
+    return (x @ w + b) * policy.action_scale
+
+
+def select_transitions(data: Dataset, max_cost: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """(observations [N, obs_dim], actions [N, act_dim]) of the valid steps of the episodes with
+    cost <= `max_cost` (all episodes if None). Raises ValueError if no episode qualifies."""
+    keep = np.ones(data.n_episodes, bool) if max_cost is None else (
+        episode_costs(data) <= max_cost)
+    if not keep.any():
+        raise ValueError(f"no episode has cost <= {max_cost:g} (the lowest episode cost is "
+                         f"{episode_costs(data).min():g})")
+    valid = np.arange(data.horizon)[None, :] < np.asarray(data.lengths)[:, None]
+    valid &= keep[:, None]
+    return (np.asarray(data.observations)[valid].astype(np.float32),
+            np.asarray(data.actions)[valid].astype(np.float32))
+
+
+def fit_bc(key: jax.Array, data: Dataset, cfg: BCConfig = BCConfig()
+           ) -> tuple[BCPolicy, np.ndarray]:
+    """Fits the clone to `data` (the episodes `cfg.max_cost` selects) by minibatch MSE.
+
+    Returns the policy and the mean loss of each chunk of `cfg.chunk` updates (squared fraction
+    of each action's scale, averaged over action dims). Pure given `key`: same key, same bits.
+    """
+    obs, actions = select_transitions(data, cfg.max_cost)
+    mean = obs.mean(0)
+    std = np.maximum(obs.std(0), cfg.std_floor)
+    scale = np.maximum(np.abs(actions).max(0), 1e-6)
+    sizes = [obs.shape[1]] + [cfg.hidden] * cfg.layers + [actions.shape[1]]
+    k_init, k_train = jax.random.split(key)
+    layers = []
+    for k, (m, n) in zip(jax.random.split(k_init, len(sizes) - 1), itertools.pairwise(sizes),
+                         strict=True):
+        layers.append((jax.random.normal(k, (m, n)) / np.sqrt(m), jnp.zeros(n)))
+    policy = BCPolicy(layers, jnp.asarray(mean), jnp.asarray(std), jnp.asarray(scale))
+    obs_d, act_d = jnp.asarray(obs), jnp.asarray(actions)
+    opt = optax.adam(cfg.lr)
+
+    def loss_fn(layers, idx):
+        pred = bc_action(policy._replace(layers=layers), obs_d[idx])
+        return jnp.mean(((pred - act_d[idx]) / policy.action_scale) ** 2)
+
+    @jax.jit
+    def chunk(layers, opt_state, key):
+        def update(carry, k):
+            layers, opt_state = carry
+            idx = jax.random.randint(k, (cfg.batch,), 0, obs_d.shape[0])
+            loss, grads = jax.value_and_grad(loss_fn)(layers, idx)
+            updates, opt_state = opt.update(grads, opt_state, layers)
+            return (optax.apply_updates(layers, updates), opt_state), loss
+
+        (layers, opt_state), losses = jax.lax.scan(update, (layers, opt_state),
+                                                   jax.random.split(key, cfg.chunk))
+        return layers, opt_state, losses.mean()
+
+    opt_state = opt.init(layers)
+    history = []
+    n_chunks = -(-cfg.steps // cfg.chunk)  # the last chunk may overshoot `steps` by < chunk
+    for k in jax.random.split(k_train, n_chunks):
+        layers, opt_state, loss = chunk(layers, opt_state, k)
+        history.append(float(loss))
+    return policy._replace(layers=layers), np.asarray(history)
+
+
+def evaluate_bc(key: jax.Array, task: str, policy: BCPolicy, episodes: int = 20
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(returns [episodes], costs [episodes]) of the clone in `task`, full-length episodes, the
+    mean action every step (no noise). One jitted, vmapped program."""
+    import envs
+    from envs.rollout import run_episode
+
+    env, params = envs.make(task)
+    if policy.obs_mean.shape[0] != env.observation_size:
+        raise ValueError(f"the clone reads {policy.obs_mean.shape[0]} observation dims, "
+                         f"{task} gives {env.observation_size}")
+    run = jax.jit(jax.vmap(lambda k: run_episode(
+        env, params, k, lambda _, state: bc_action(policy, state.obs))))
+    out = jax.device_get(run(jax.random.split(key, episodes)))
+    return np.asarray(out["return"]), np.asarray(out["cost"])
+
+
+__all__ = ["BCConfig", "BCPolicy", "bc_action", "evaluate_bc", "fit_bc", "select_transitions"]

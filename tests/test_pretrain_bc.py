@@ -1,0 +1,91 @@
+"""Behaviour cloning baseline: it fits a learnable mapping, selects BC-Safe episodes, is
+deterministic, rejects bad settings, and runs end to end from the CLI."""
+
+import jax
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from safecdt_jax.cli import app
+from safecdt_jax.data import make_dataset, write_dataset
+from safecdt_jax.data.collect import collect, write_collected
+from safecdt_jax.pretrain.bc import BCConfig, bc_action, evaluate_bc, fit_bc, select_transitions
+
+CFG = BCConfig(hidden=32, steps=600, batch=64, lr=3e-3, chunk=200)
+
+
+def linear_data(n=12, horizon=10, obs_dim=4, seed=0):
+    """Actions 0.02 * tanh(obs @ W) (Car-sized), episode i costing i (one cost step each)."""
+    rng = np.random.default_rng(seed)
+    obs = rng.normal(3.0, 5.0, (n, horizon, obs_dim)).astype(np.float32)  # off-centre, wide
+    w = rng.normal(size=(obs_dim, 2)) / np.sqrt(obs_dim)
+    actions = (0.02 * np.tanh((obs - 3.0) / 5.0 @ w)).astype(np.float32)
+    costs = np.zeros((n, horizon), np.float32)
+    costs[:, :] = (np.arange(horizon)[None, :] < np.arange(n)[:, None])
+    return make_dataset(obs, actions, np.zeros((n, horizon), np.float32), costs,
+                        np.full(n, horizon), attrs={"task": "Synthetic"})
+
+
+def test_fits_a_learnable_mapping_in_units_of_the_action_range():
+    data = linear_data()
+    policy, loss = fit_bc(jax.random.PRNGKey(0), data, CFG)
+    assert loss.shape == (3,) and loss[-1] < 0.2 * loss[0]
+    pred = np.asarray(bc_action(policy, data.observations))
+    rmse = np.sqrt(np.mean((pred - data.actions) ** 2)) / 0.02
+    assert rmse < 0.15  # of the action range, on the training data
+    np.testing.assert_allclose(policy.action_scale, np.abs(data.actions).max((0, 1)), rtol=1e-6)
+
+
+def test_same_key_same_bits():
+    data = linear_data()
+    a, la = fit_bc(jax.random.PRNGKey(3), data, CFG)
+    b, lb = fit_bc(jax.random.PRNGKey(3), data, CFG)
+    np.testing.assert_array_equal(la, lb)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_bc_safe_keeps_only_cheap_episodes():
+    data = linear_data()  # episode i costs i
+    obs, actions = select_transitions(data, 3.0)
+    assert obs.shape == (4 * 10, 4) and actions.shape == (40, 2)
+    np.testing.assert_array_equal(obs, data.observations[:4].reshape(-1, 4))
+    assert len(select_transitions(data, None)[0]) == 12 * 10
+    cheap = make_dataset(data.observations, data.actions, data.rewards, data.costs + 1.0,
+                         data.lengths)
+    with pytest.raises(ValueError, match=r"no episode has cost <= 0 .*lowest episode cost is 10"):
+        select_transitions(cheap, 0.0)
+
+
+@pytest.mark.parametrize("bad", [dict(steps=0), dict(lr=0.0), dict(max_cost=-1.0),
+                                 dict(hidden=1.5)])
+def test_bad_settings_name_the_field(bad):
+    with pytest.raises(ValueError, match=f"BCConfig.{next(iter(bad))}"):
+        BCConfig(**bad)
+
+
+def test_rollout_checks_the_observation_size():
+    policy, _ = fit_bc(jax.random.PRNGKey(0), linear_data(), BCConfig(hidden=8, steps=1, chunk=1))
+    with pytest.raises(ValueError, match="reads 4 observation dims, PointCircle1 gives"):
+        evaluate_bc(jax.random.PRNGKey(0), "PointCircle1", policy, episodes=1)
+
+
+def test_cli_end_to_end(tmp_path):
+    path = tmp_path / "pc1.hdf5"
+    write_collected(path, collect(jax.random.PRNGKey(0), "PointCircle1", 4, horizon=20))
+    result = CliRunner().invoke(app, ["bc", "--data", str(path), "--steps", "20",
+                                      "--episodes", "2"])
+    assert result.exit_code == 0, result.output
+    assert "BC-All: 4 episodes, 80 transitions" in result.output
+    assert "PointCircle1, 2 episodes: return" in result.output
+    # 20 steps from the start never reach a wall: every episode costs 0, BC-Safe keeps all.
+    safe = CliRunner().invoke(app, ["bc", "--data", str(path), "--max-cost", "0", "--steps",
+                                    "20", "--episodes", "2"])
+    assert safe.exit_code == 0 and "BC-Safe (cost <= 0): 4 episodes" in safe.output
+
+def test_synthetic_file_without_a_known_task_is_a_clean_error(tmp_path):
+    path = tmp_path / "syn.hdf5"
+    write_dataset(path, linear_data())
+    result = CliRunner().invoke(app, ["bc", "--data", str(path), "--steps", "1"])
+    assert result.exit_code == 1
+    assert "error: unknown task 'Synthetic' (from " in result.output
