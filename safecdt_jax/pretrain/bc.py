@@ -4,8 +4,8 @@ A per-step MLP from observation to action, fitted by mean squared error, then ro
 task. It sees no return or cost target and no history, so it answers a question the CDT cannot
 answer about itself: whether the actions in the data can be cloned from the observations. With
 `max_cost` it keeps only the episodes of cost <= max_cost (BC-Safe); its rollout cost is then
-what imitation alone achieves on the safe part of the data, the floor a CDT asked for a low cost
-can hope to reach without using history. (Collector-v4 data, 20 episodes: BC-Safe at
+what plain imitation of the safe part of the data achieves, a reference that a CDT asked for a
+low cost should match. (Collector-v4 data, 20 episodes: BC-Safe at
 max_cost 0 costs 75 per episode on CarGoal1, as a `cpu` CDT trained on careful-only data does,
 37-73; on CarCircle1 it also costs 75, where the CDT, reading its context, gets 4-7 at low
 cost targets.)
