@@ -101,7 +101,7 @@ def bc(
     import envs
     from safecdt_jax.data.dsrl import load_dataset
     from safecdt_jax.data.windows import episode_costs, episode_returns
-    from safecdt_jax.pretrain.bc import BCConfig, evaluate_bc, fit_bc, select_transitions
+    from safecdt_jax.pretrain.bc import BCConfig, cloned_episodes, evaluate_bc, fit_bc
 
     try:
         cfg = BCConfig(steps=steps, max_cost=max_cost, chunk=min(1_000, steps))
@@ -113,8 +113,7 @@ def bc(
         if task not in envs.NAMES:  # before minutes of fitting, not after
             raise ValueError(f"unknown task {task!r} (from {'--task' if task_flag else data}); "
                              f"valid names: {', '.join(envs.NAMES)}")
-        n = len(select_transitions(ds, max_cost)[0])
-        keep = episode_costs(ds) <= (np.inf if max_cost is None else max_cost)
+        keep = cloned_episodes(ds, max_cost)  # before fitting: no qualifying episode is an error
         key = jax.random.PRNGKey(seed)
         policy, loss = fit_bc(key, ds, cfg)
         returns, costs = evaluate_bc(jax.random.fold_in(key, 1), task, policy, episodes)
@@ -122,6 +121,7 @@ def bc(
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
     label = "BC-All" if max_cost is None else f"BC-Safe (cost <= {max_cost:g})"
+    n = int(np.asarray(ds.lengths)[keep].sum())
     typer.echo(f"{label}: {keep.sum()} episodes, {n:,} transitions; data mean return "
                f"{episode_returns(ds)[keep].mean():.2f}, cost {episode_costs(ds)[keep].mean():.2f}")
     typer.echo(f"fit: RMSE {np.sqrt(loss[0]):.3f} -> {np.sqrt(loss[-1]):.3f} of each action's "

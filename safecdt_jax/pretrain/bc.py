@@ -87,16 +87,23 @@ def bc_action(policy: BCPolicy, obs: jax.Array) -> jax.Array:
     return (x @ w + b) * policy.action_scale
 
 
-def select_transitions(data: Dataset, max_cost: float | None) -> tuple[np.ndarray, np.ndarray]:
-    """(observations [N, obs_dim], actions [N, act_dim]) of the valid steps of the episodes with
-    cost <= `max_cost` (all episodes if None). Raises ValueError if no episode qualifies."""
-    keep = np.ones(data.n_episodes, bool) if max_cost is None else (
-        episode_costs(data) <= max_cost)
-    if not keep.any():
+def cloned_episodes(data: Dataset, max_cost: float | None) -> np.ndarray:
+    """bool [n_episodes]: the episodes of cost <= `max_cost` (all if None). Raises ValueError
+    if no episode qualifies."""
+    if max_cost is None:
+        return np.ones(data.n_episodes, bool)
+    costs = episode_costs(data)
+    if not (costs <= max_cost).any():
         raise ValueError(f"no episode has cost <= {max_cost:g} (the lowest episode cost is "
-                         f"{episode_costs(data).min():g})")
+                         f"{costs.min():g})")
+    return costs <= max_cost
+
+
+def select_transitions(data: Dataset, max_cost: float | None) -> tuple[np.ndarray, np.ndarray]:
+    """(observations [N, obs_dim], actions [N, act_dim]) of the valid steps of the episodes
+    `cloned_episodes(data, max_cost)` keeps."""
     valid = np.arange(data.horizon)[None, :] < np.asarray(data.lengths)[:, None]
-    valid &= keep[:, None]
+    valid &= cloned_episodes(data, max_cost)[:, None]
     return (np.asarray(data.observations)[valid].astype(np.float32),
             np.asarray(data.actions)[valid].astype(np.float32))
 
@@ -165,4 +172,5 @@ def evaluate_bc(key: jax.Array, task: str, policy: BCPolicy, episodes: int = 20
     return np.asarray(out["return"]), np.asarray(out["cost"])
 
 
-__all__ = ["BCConfig", "BCPolicy", "bc_action", "evaluate_bc", "fit_bc", "select_transitions"]
+__all__ = ["BCConfig", "BCPolicy", "bc_action", "cloned_episodes", "evaluate_bc", "fit_bc",
+           "select_transitions"]
