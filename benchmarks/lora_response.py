@@ -15,20 +15,18 @@ toward the costs realised at the deployment's targets.
 """
 
 import argparse
-import dataclasses
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-import envs
 from benchmarks.common import machine, markdown_table, write_json
-from safecdt_jax.deploy import DeployConfig, init_adapters, make_spec, make_variant, seed_keys
+from safecdt_jax.deploy import init_adapters, make_spec, make_variant, seed_keys
+from safecdt_jax.deploy.job import load_deployment
 from safecdt_jax.deploy.loop import deploy_episodes, deploy_init
 from safecdt_jax.deploy.rollout import evaluate_targets
 from safecdt_jax.model.lora import merge_lora
-from safecdt_jax.pretrain.checkpoint import load_policy, token_scales
 
 
 def stage_means(x, stage_len: int) -> list[float]:
@@ -46,17 +44,14 @@ def response(ckpt: str, target: str, variants: list[str], seeds: int, budget: fl
     Costs are mean episode costs (cost steps); the return target of the evaluation is
     `return_ratio` x the checkpoint's reference return (RR_0 = 0.5 is the deployment's start).
     """
-    env, env_params = envs.make(target)
-    policy = load_policy(ckpt, task=target)
-    reward_scale, cost_scale = token_scales(policy.meta)
-    cfg = dataclasses.replace(DeployConfig(), reward_scale=reward_scale, cost_scale=cost_scale)
-    r_ref = float(policy.meta["dataset"]["reference_return"])
+    env, env_params, policy, cfg, r_ref = load_deployment(ckpt, target)
     static = dict(env=env, model_cfg=policy.cfg, cfg=cfg)
     c_t = jnp.asarray(cost_targets, jnp.float32)
     r_t = jnp.full_like(c_t, return_ratio * r_ref)
     evaluate = jax.jit(lambda p: evaluate_targets(
         jax.random.PRNGKey(11), env, env_params, p, policy.cfg, r_t, c_t, episodes,
-        reward_scale=reward_scale, cost_scale=cost_scale, clip_ctg=cfg.clip_ctg).costs.mean(1))
+        reward_scale=cfg.reward_scale, cost_scale=cfg.cost_scale,
+        clip_ctg=cfg.clip_ctg).costs.mean(1))
     keys = seed_keys(0, seeds)
     adapters = init_adapters(keys, policy.params, policy.cfg)
     out = {"base": np.asarray(evaluate(policy.params)).tolist(), "variants": {}}

@@ -62,6 +62,24 @@ def parse_list(text: str, kind: Callable[[str], Any], what: str) -> list:
     return out
 
 
+def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None):
+    """What deploying checkpoint `ckpt` into task `target` needs: `(env, env_params, policy,
+    cfg, r_ref)`. `cfg` (default `DeployConfig()`) gets the checkpoint's token scales
+    (`token_scales`), since the model only understands the ones it was trained with; `r_ref` is
+    the checkpoint's reference return (raw units). Raises CheckpointError if the model does not
+    fit the task."""
+    import envs
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.pretrain.checkpoint import load_policy, token_scales
+
+    env, env_params = envs.make(target)
+    policy = load_policy(ckpt, task=target)
+    reward_scale, cost_scale = token_scales(policy.meta)
+    cfg = dataclasses.replace(DeployConfig() if cfg is None else cfg,
+                              reward_scale=reward_scale, cost_scale=cost_scale)
+    return env, env_params, policy, cfg, float(policy.meta["dataset"]["reference_return"])
+
+
 def run_deployment(
     ckpt: str | os.PathLike,
     target: str,
@@ -76,29 +94,22 @@ def run_deployment(
     """Deploy checkpoint `ckpt` into task `target` for every (variant, budget) and seed.
 
     `cfg` (default `DeployConfig()`) sets the deployment; its token scales are replaced by the
-    checkpoint's (`token_scales`), since the model only understands the ones it was trained with.
+    checkpoint's (see `load_deployment`).
 
     One sweep call (runs x seeds); the episodes advance in stage-sized chunks of the same
     compiled program so a progress bar can follow. Returns the results record (plain Python,
     JSON-ready): `runs`, one per (variant, budget), each with per-episode metrics [seeds][episodes]
     and the across-seed summary; plus configs, versions and timings.
     """
-    import envs
-    from safecdt_jax.deploy.config import DeployConfig, make_variant
+    from safecdt_jax.deploy.config import make_variant
     from safecdt_jax.deploy.loop import make_spec, seed_keys
     from safecdt_jax.deploy.sweep import stack_specs, sweep
-    from safecdt_jax.pretrain.checkpoint import load_policy, token_scales
     from safecdt_jax.pretrain.run import versions
     from safecdt_jax.report.tables import summarize_runs
 
-    cfg = DeployConfig() if cfg is None else cfg
     if seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {seeds}")
-    env, env_params = envs.make(target)
-    policy = load_policy(ckpt, task=target)
-    reward_scale, cost_scale = token_scales(policy.meta)
-    cfg = dataclasses.replace(cfg, reward_scale=reward_scale, cost_scale=cost_scale)
-    r_ref = float(policy.meta["dataset"]["reference_return"])
+    env, env_params, policy, cfg, r_ref = load_deployment(ckpt, target, cfg)
     combos = list(itertools.product(variants, budgets))
     specs = stack_specs([make_spec(make_variant(v, cfg), b, r_ref) for v, b in combos])
     keys = seed_keys(seed, seeds)
