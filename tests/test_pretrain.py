@@ -31,10 +31,13 @@ from safecdt_jax.pretrain import (
     run_key,
     stream_key,
 )
+from safecdt_jax.pretrain.normalize import IONorm, fold_io_norm
 
 TASK = "Synthetic"
 OPTIM = OptimConfig(learning_rate=1e-3, warmup_steps=5)  # fast enough to learn in 60 updates
-CFG = PretrainConfig(steps=60, batch_size=16, chunk=20, checkpoint_every=20, max_to_keep=5)
+# Normalised, so that saving, loading and resuming are tested with the fold in the way.
+CFG = PretrainConfig(steps=60, batch_size=16, chunk=20, checkpoint_every=20, max_to_keep=5,
+                     scale_actions=True, standardize_obs=True)
 
 
 def synthetic_dataset(seed: int = 0, n: int = 24, horizon: int = 16, obs_dim: int = 5):
@@ -61,6 +64,11 @@ def full_run(data_file, tmp_path_factory):
     return pretrain(data_file, out, preset="tiny", config=CFG, optim=OPTIM, progress=False)
 
 
+def _raw_params(result):
+    """The run's final params as `load_checkpoint` returns them: normalisation folded in."""
+    return fold_io_norm(result.state.params, IONorm.from_json(result.meta["io_norm"]))
+
+
 def _assert_trees_equal(a, b):
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
@@ -73,7 +81,8 @@ def test_config_defaults_and_validation():
     assert (osrl.batch_size, osrl.reward_scale, osrl.cost_scale) == (2048, 0.1, 1.0)
     assert default_pretrain("cpu", steps=7).steps == 7
     bad = [dict(steps=0), dict(batch_size=-1), dict(chunk=1.5), dict(seed=-1), dict(c0=0.0),
-           dict(reward_scale=-0.1), dict(checkpoint_every=-5), dict(relabel=1)]
+           dict(reward_scale=-0.1), dict(checkpoint_every=-5), dict(relabel=1),
+           dict(scale_actions="yes"), dict(standardize_obs=0)]
     for kwargs in bad:
         with pytest.raises(ValueError) as err:
             PretrainConfig(**kwargs)
@@ -114,7 +123,7 @@ def test_chunked_scan_equals_step_loop(data_file):
 def test_save_load_round_trip(full_run, data_file):
     assert checkpoint_steps(full_run.path) == [20, 40, 60]
     ckpt = load_checkpoint(full_run.path)
-    _assert_trees_equal(ckpt.params, full_run.state.params)
+    _assert_trees_equal(ckpt.params, _raw_params(full_run))
     cdt_cfg, optim, cfg = configs_from_meta(ckpt.meta)
     assert ckpt.cfg == cdt_cfg and optim == OPTIM and cfg == CFG
     assert cdt_cfg.episode_len == 16 and cdt_cfg.obs_dim == 5  # no env named Synthetic: data's
@@ -154,7 +163,7 @@ def test_resume_rejects_other_config_and_existing_folder(full_run, data_file):
 
 def test_load_policy_checks_the_task(full_run):
     ckpt = load_policy(full_run.path, task=TASK, obs_dim=5)
-    _assert_trees_equal(ckpt.params, full_run.state.params)
+    _assert_trees_equal(ckpt.params, _raw_params(full_run))
     with pytest.raises(CheckpointError, match="does not fit observation size 7"):
         load_policy(full_run.path, obs_dim=7)
     with pytest.raises(CheckpointError, match=r"does not fit task CarGoal1 \(obs 72") as err:

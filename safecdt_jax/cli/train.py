@@ -29,11 +29,18 @@ def pretrain(
         help="Continue the checkpoint in --out up to --steps.")] = False,
     overwrite: Annotated[bool, typer.Option(
         help="Delete checkpoints already in --out first.")] = False,
+    scale_actions: Annotated[bool, typer.Option(
+        help="Train on actions divided by the data's largest |action| (folded into the saved "
+             "weights, which emit raw actions either way).")] = False,
+    standardize_obs: Annotated[bool, typer.Option(
+        help="Train on observations standardised by the data's mean and std (folded into "
+             "the saved weights).")] = False,
 ) -> None:
     """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs."""
     from safecdt_jax import pretrain as pt
 
-    overrides = {"seed": seed}
+    overrides = {"seed": seed, "scale_actions": scale_actions,
+                 "standardize_obs": standardize_obs}
     for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk)):
         if value is not None:
             overrides[name] = value

@@ -18,6 +18,7 @@ import jax
 
 from safecdt_jax.model import CDTConfig, OptimConfig, Params, TrainState, init_train_state
 from safecdt_jax.pretrain.config import PretrainConfig
+from safecdt_jax.pretrain.normalize import IONorm, fold_io_norm
 
 FORMAT = 1  # bump when the layout of `meta` or the state changes incompatibly
 
@@ -33,7 +34,8 @@ class CheckpointError(ValueError):
 
 
 class Checkpoint(NamedTuple):
-    """A loaded policy: CDT `params`, its `cfg` and the checkpoint's JSON `meta`."""
+    """A loaded policy: CDT `params` (raw observation and action units), its `cfg` and the
+    checkpoint's JSON `meta`."""
 
     params: Params
     cfg: CDTConfig
@@ -117,7 +119,9 @@ def read_meta(path: str | os.PathLike, step: int | None = None) -> dict[str, Any
 def configs_from_meta(meta: dict[str, Any]) -> tuple[CDTConfig, OptimConfig, PretrainConfig]:
     """The model, optimiser and run configs recorded in a checkpoint's metadata."""
     model = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["model"].items()}
-    return CDTConfig(**model), OptimConfig(**meta["optim"]), PretrainConfig(**meta["pretrain"])
+    # Checkpoints from before these fields existed trained on raw units.
+    pretrain = {"scale_actions": False, "standardize_obs": False, **meta["pretrain"]}
+    return CDTConfig(**model), OptimConfig(**meta["optim"]), PretrainConfig(**pretrain)
 
 
 def token_scales(meta: dict[str, Any]) -> tuple[float, float]:
@@ -147,12 +151,16 @@ def load_checkpoint(
 ) -> Checkpoint:
     """Load the CDT params, config and metadata of checkpoint `step` (default: the latest).
 
+    A run trained on normalised data (`meta["io_norm"]`) has that normalisation folded into the
+    returned params, so they read raw observations and emit raw actions like any other.
     Raises CheckpointError when the folder is missing or holds no complete checkpoint.
     """
     meta = read_meta(path, step)
     cdt_cfg, optim, _ = configs_from_meta(meta)
-    state = restore_state(path, cdt_cfg, optim, meta["step"])
-    return Checkpoint(state.params, cdt_cfg, meta)
+    params = restore_state(path, cdt_cfg, optim, meta["step"]).params
+    if "io_norm" in meta:
+        params = fold_io_norm(params, IONorm.from_json(meta["io_norm"]))
+    return Checkpoint(params, cdt_cfg, meta)
 
 
 def load_policy(

@@ -28,6 +28,13 @@ class PretrainConfig:
             unreachable, which is exactly how deployment conditions it.
         reward_scale: return-to-go tokens are raw RTG times this (OSRL: 0.1).
         cost_scale: cost-to-go tokens are raw CTG times this (OSRL: 1).
+        scale_actions: train on actions divided by the data's largest |action| per dimension,
+            then fold the scale into the saved weights (`safecdt_jax.pretrain.normalize`), which
+            emit raw actions either way. Off by default, as in OSRL, whose agents' actions fill
+            [-1, 1]; the Car's scripted wheel commands stay within +-0.02 (its actuators
+            saturate there). Measured effects: README, "Pretraining units".
+        standardize_obs: train on observations standardised by the data's mean and std (also
+            folded into the weights). Off by default: on CarCircle1 it loses the cost response.
         checkpoint_every: write a checkpoint whenever a chunk ends at or past a multiple of this
             many updates (the final step is always saved); 0 saves only at the end.
         max_to_keep: checkpoints kept in the folder (oldest deleted first).
@@ -41,6 +48,8 @@ class PretrainConfig:
     relabel: bool = True
     reward_scale: float = 0.1
     cost_scale: float = 1.0
+    scale_actions: bool = False
+    standardize_obs: bool = False
     checkpoint_every: int = 2000
     max_to_keep: int = 2
 
@@ -57,8 +66,10 @@ class PretrainConfig:
             value = getattr(self, name)
             if not value > 0:
                 raise ValueError(f"PretrainConfig.{name} must be positive, got {value!r}")
-        if not isinstance(self.relabel, bool):
-            raise ValueError(f"PretrainConfig.relabel must be True or False, got {self.relabel!r}")
+        for name in ("relabel", "scale_actions", "standardize_obs"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"PretrainConfig.{name} must be True or False, "
+                                 f"got {getattr(self, name)!r}")
 
     def replace(self, **changes: Any) -> PretrainConfig:
         """A copy with `changes` applied (validated again)."""

@@ -37,6 +37,7 @@ from safecdt_jax.pretrain.checkpoint import (
 )
 from safecdt_jax.pretrain.config import PretrainConfig, default_pretrain
 from safecdt_jax.pretrain.loop import History, prepare_data, stream_key, train
+from safecdt_jax.pretrain.normalize import IONorm, fit_io_norm, normalise_dataset
 
 _PACKAGES = ("safecdt-jax", "jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy")
 
@@ -151,6 +152,9 @@ def plan(
         "dataset": dataset_record(data_path, data),
         "versions": versions(),
     }
+    if cfg.scale_actions or cfg.standardize_obs:  # a function of the data and these flags
+        meta["io_norm"] = fit_io_norm(data, observations=cfg.standardize_obs,
+                                      actions=cfg.scale_actions).to_json()
     out = Path(out) if out is not None else checkpoint_dir(task, preset)
     return RunSpec(data, task, out, cdt_cfg, optim, cfg, meta)
 
@@ -183,6 +187,10 @@ def run(
 ) -> PretrainResult:
     """Train the run `spec` (from `plan`), checkpointing into `spec.out`.
 
+    With `scale_actions` or `standardize_obs` the state trains on normalised data
+    (`pretrain.normalize`); its params are in those units, and `load_checkpoint` folds them back
+    to raw ones.
+
     With `resume`, training continues from the latest checkpoint in the folder (if any) up to
     `spec.cfg.steps` total updates, bit-identical to an uninterrupted run; a checkpoint whose
     configs or data differ raises CheckpointError naming the fields. Without `resume`, a folder
@@ -210,7 +218,10 @@ def run(
         state = init_train_state(stream_key(cfg.seed, "init"), spec.cdt_cfg, spec.optim)
 
     t0 = time.perf_counter()
-    data, weights, n_relabelled = prepare_data(spec.data, cfg)
+    data = spec.data
+    if "io_norm" in spec.meta:
+        data = normalise_dataset(data, IONorm.from_json(spec.meta["io_norm"]))
+    data, weights, n_relabelled = prepare_data(data, cfg)
     dataset = {**spec.meta["dataset"], "n_relabelled": n_relabelled,
                "n_sampled": int(np.sum(np.asarray(weights) > 0))}
     setup_s = time.perf_counter() - t0
