@@ -47,6 +47,7 @@ def test_statistics_ignore_padding_and_floor_constant_sensors():
 
 def test_normalised_dataset_keeps_padding_zero():
     data = _dataset()
+    assert data.valid_steps.tolist() == [[True, True, True], [True, True, False]]
     norm = fit_io_norm(data)
     out = normalise_dataset(data, norm)
     np.testing.assert_allclose(out.observations[0, :, 0], (np.array([1, 3, 5]) - 5) / np.sqrt(8),

@@ -122,6 +122,11 @@ class Dataset:
         """Action size."""
         return self.actions.shape[-1]
 
+    @property
+    def valid_steps(self) -> np.ndarray:
+        """Bool numpy array [n, T]: True where step t lies inside episode i, False on padding."""
+        return np.arange(self.horizon)[None, :] < np.asarray(self.lengths)[:, None]
+
 
 jax.tree_util.register_dataclass(Dataset)
 
@@ -233,7 +238,7 @@ def to_flat(data: Dataset) -> dict[str, np.ndarray]:
     lengths = np.asarray(data.lengths)
     if np.any(lengths <= 0):
         raise DatasetError(f"episode {int(np.argmax(lengths <= 0))} has no steps; cannot write it")
-    valid = np.arange(data.horizon)[None, :] < lengths[:, None]
+    valid = data.valid_steps
     out = {
         k: np.asarray(getattr(data, k))[valid]
         for k in ("observations", "next_observations", "actions", "rewards", "costs")

@@ -42,7 +42,7 @@ def summarize_dataset(
     if not isinstance(data, Dataset):
         data = load_dataset(data)
     lengths = np.asarray(data.lengths)
-    valid = np.arange(data.horizon)[None, :] < lengths[:, None]
+    valid = data.valid_steps
     returns = np.where(valid, np.asarray(data.rewards, np.float64), 0.0).sum(axis=1)
     costs = np.where(valid, np.asarray(data.costs, np.float64), 0.0).sum(axis=1)
     if returns.size == 0:

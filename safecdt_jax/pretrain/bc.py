@@ -102,8 +102,7 @@ def cloned_episodes(data: Dataset, max_cost: float | None) -> np.ndarray:
 def select_transitions(data: Dataset, max_cost: float | None) -> tuple[np.ndarray, np.ndarray]:
     """(observations [N, obs_dim], actions [N, act_dim]) of the valid steps of the episodes
     `cloned_episodes(data, max_cost)` keeps."""
-    valid = np.arange(data.horizon)[None, :] < np.asarray(data.lengths)[:, None]
-    valid &= cloned_episodes(data, max_cost)[:, None]
+    valid = data.valid_steps & cloned_episodes(data, max_cost)[:, None]
     return (np.asarray(data.observations)[valid].astype(np.float32),
             np.asarray(data.actions)[valid].astype(np.float32))
 

@@ -63,7 +63,7 @@ def fit_io_norm(data: Dataset, observations: bool = True, actions: bool = True,
     The std is floored at `std_floor` (sensors that never move, like the planar robots' vertical
     velocity, would otherwise be divided by 0) and the action scale at `act_floor`.
     """
-    valid = np.arange(data.horizon)[None, :] < np.asarray(data.lengths)[:, None]
+    valid = data.valid_steps
     norm = identity_norm(data.obs_dim, data.act_dim)
     if observations:
         obs = np.asarray(data.observations, np.float64)[valid]
@@ -78,7 +78,7 @@ def fit_io_norm(data: Dataset, observations: bool = True, actions: bool = True,
 def normalise_dataset(data: Dataset, norm: IONorm) -> Dataset:
     """`data` with observations (and next observations) standardised and actions scaled by
     `norm`; padding stays zero. Rewards, costs and everything else are unchanged."""
-    valid = (np.arange(data.horizon)[None, :] < np.asarray(data.lengths)[:, None])[..., None]
+    valid = data.valid_steps[..., None]
 
     def obs(x):
         return np.where(valid, (np.asarray(x) - norm.obs_mean) / norm.obs_std, 0.0).astype(
