@@ -8,10 +8,17 @@ from typer.testing import CliRunner
 
 from safecdt_jax.cli import app
 from safecdt_jax.data import load_dataset, make_dataset, write_dataset
-from safecdt_jax.model import CDTConfig, init_cdt
+from safecdt_jax.model import CDTConfig, OptimConfig, init_cdt
 from safecdt_jax.model.cdt import apply_cdt, dummy_batch
 from safecdt_jax.model.infer import newest_action
-from safecdt_jax.pretrain import configs_from_meta, load_checkpoint, restore_state
+from safecdt_jax.pretrain import (
+    PretrainConfig,
+    config_diff,
+    configs_from_meta,
+    load_checkpoint,
+    restore_state,
+)
+from safecdt_jax.pretrain.checkpoint import config_record
 from safecdt_jax.pretrain.normalize import (
     IONorm,
     fit_io_norm,
@@ -128,3 +135,15 @@ def test_checkpoint_records_and_folds_the_normalisation(tmp_path, normalize):
         trained = fold_io_norm(trained, norm)
     for a, b in zip(jax.tree.leaves(ckpt.params), jax.tree.leaves(trained), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_a_checkpoint_from_before_the_flags_reads_as_unnormalised():
+    """Its meta has no `scale_actions` / `standardize_obs`: same run as both False, so a cached
+    checkpoint is reused, not retrained; a request with a flag on differs."""
+    new = config_record(CFG, OptimConfig(), PretrainConfig())
+    old = {**new, "pretrain": {k: v for k, v in new["pretrain"].items()
+                               if k not in ("scale_actions", "standardize_obs")}}
+    assert config_diff(old, new) == []
+    assert configs_from_meta(old)[2] == PretrainConfig()
+    flagged = config_record(CFG, OptimConfig(), PretrainConfig(scale_actions=True))
+    assert config_diff(old, flagged) == ["pretrain.scale_actions: False -> True"]

@@ -29,6 +29,11 @@ RESUMABLE_FIELDS = frozenset({"pretrain.steps", "pretrain.checkpoint_every",
                               "pretrain.max_to_keep", "pretrain.chunk"})
 
 
+# Run-config fields added after checkpoints were first written, with the value those older
+# checkpoints were trained with; a meta without them reads as these.
+LEGACY_PRETRAIN = {"scale_actions": False, "standardize_obs": False}
+
+
 class CheckpointError(ValueError):
     """A checkpoint is missing, unreadable, or does not fit the request (one-line message)."""
 
@@ -119,8 +124,7 @@ def read_meta(path: str | os.PathLike, step: int | None = None) -> dict[str, Any
 def configs_from_meta(meta: dict[str, Any]) -> tuple[CDTConfig, OptimConfig, PretrainConfig]:
     """The model, optimiser and run configs recorded in a checkpoint's metadata."""
     model = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["model"].items()}
-    # Checkpoints from before these fields existed trained on raw units.
-    pretrain = {"scale_actions": False, "standardize_obs": False, **meta["pretrain"]}
+    pretrain = {**LEGACY_PRETRAIN, **meta["pretrain"]}
     return CDTConfig(**model), OptimConfig(**meta["optim"]), PretrainConfig(**pretrain)
 
 
@@ -214,11 +218,14 @@ def config_diff(saved: dict[str, Any], requested: dict[str, Any]) -> list[str]:
     """Fields that differ between two metas, as `"section.field: saved -> requested"` strings.
 
     Compares the task, the three configs and the data set fingerprint; fields in
-    `RESUMABLE_FIELDS` are ignored (a resumed run may train longer or save more often).
+    `RESUMABLE_FIELDS` are ignored (a resumed run may train longer or save more often), and a
+    run-config field missing from an older meta reads as its `LEGACY_PRETRAIN` value.
     """
     diffs = []
     for section in ("model", "optim", "pretrain"):
         a, b = saved.get(section, {}), requested.get(section, {})
+        if section == "pretrain":
+            a, b = {**LEGACY_PRETRAIN, **a}, {**LEGACY_PRETRAIN, **b}
         for name in sorted(set(a) | set(b)):
             field = f"{section}.{name}"
             if field not in RESUMABLE_FIELDS and a.get(name) != b.get(name):
