@@ -6,7 +6,7 @@ answer about itself: whether the actions in the data can be cloned from the obse
 `max_cost` it keeps only the episodes of cost <= max_cost (BC-Safe); its rollout cost is then
 what plain imitation of the safe part of the data achieves, a reference that a CDT asked for a
 low cost should match. (Collector-v4 data, 20 episodes: BC-Safe at
-max_cost 0 costs 75 per episode on CarGoal1, as a `cpu` CDT trained on careful-only data does,
+max_cost 0 costs 64-75 per episode on CarGoal1, as a `cpu` CDT trained on careful-only data does,
 37-73; on CarCircle1 it also costs 75, where the CDT, reading its context, gets 4-7 at low
 cost targets.)
 
@@ -31,6 +31,7 @@ import optax
 
 from safecdt_jax.data.dataset import Dataset
 from safecdt_jax.data.windows import episode_costs
+from safecdt_jax.pretrain.normalize import transition_norm
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,16 +116,15 @@ def fit_bc(key: jax.Array, data: Dataset, cfg: BCConfig = BCConfig()
     of each action's scale, averaged over action dims). Pure given `key`: same key, same bits.
     """
     obs, actions = select_transitions(data, cfg.max_cost)
-    mean = obs.mean(0)
-    std = np.maximum(obs.std(0), cfg.std_floor)
-    scale = np.maximum(np.abs(actions).max(0), 1e-6)
+    norm = transition_norm(obs, actions, cfg.std_floor, act_floor=1e-6)
     sizes = [obs.shape[1]] + [cfg.hidden] * cfg.layers + [actions.shape[1]]
     k_init, k_train = jax.random.split(key)
     layers = []
     for k, (m, n) in zip(jax.random.split(k_init, len(sizes) - 1), itertools.pairwise(sizes),
                          strict=True):
         layers.append((jax.random.normal(k, (m, n)) / np.sqrt(m), jnp.zeros(n)))
-    policy = BCPolicy(layers, jnp.asarray(mean), jnp.asarray(std), jnp.asarray(scale))
+    policy = BCPolicy(layers, jnp.asarray(norm.obs_mean), jnp.asarray(norm.obs_std),
+                      jnp.asarray(norm.act_scale))
     obs_d, act_d = jnp.asarray(obs), jnp.asarray(actions)
     opt = optax.adam(cfg.lr)
 

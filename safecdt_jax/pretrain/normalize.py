@@ -54,25 +54,32 @@ def identity_norm(obs_dim: int, act_dim: int) -> IONorm:
                   np.ones(act_dim, np.float32))
 
 
-def fit_io_norm(data: Dataset, observations: bool = True, actions: bool = True,
-                std_floor: float = 0.01, act_floor: float = 1e-3) -> IONorm:
-    """Mean and std of each observation dimension (if `observations`), and the largest |action|
-    of each action dimension (if `actions`), over the valid steps of `data`; the parts not
-    asked for are the identity.
+def transition_norm(observations, actions, std_floor: float = 0.01,
+                    act_floor: float = 1e-3) -> IONorm:
+    """Mean and std of each observation dimension and largest |action| of each action dimension
+    of flat transitions `observations [N, obs_dim]`, `actions [N, act_dim]` (raw units).
 
     The std is floored at `std_floor` (sensors that never move, like the planar robots' vertical
-    velocity, would otherwise be divided by 0) and the action scale at `act_floor`.
+    velocity, would otherwise be divided by 0) and the action scale at `act_floor`. Sums are
+    accumulated in float64; the result is float32.
     """
+    obs = np.asarray(observations)
+    return IONorm(obs.mean(0, dtype=np.float64).astype(np.float32),
+                  np.maximum(obs.std(0, dtype=np.float64), std_floor).astype(np.float32),
+                  np.maximum(np.abs(np.asarray(actions)).max(0), act_floor).astype(np.float32))
+
+
+def fit_io_norm(data: Dataset, observations: bool = True, actions: bool = True,
+                std_floor: float = 0.01, act_floor: float = 1e-3) -> IONorm:
+    """`transition_norm` of the valid steps of `data`, keeping the observation part only if
+    `observations` and the action part only if `actions` (the identity otherwise)."""
     valid = data.valid_steps
-    norm = identity_norm(data.obs_dim, data.act_dim)
-    if observations:
-        obs = np.asarray(data.observations, np.float64)[valid]
-        norm = norm._replace(obs_mean=obs.mean(0).astype(np.float32),
-                             obs_std=np.maximum(obs.std(0), std_floor).astype(np.float32))
-    if actions:
-        act = np.abs(np.asarray(data.actions, np.float64)[valid])
-        norm = norm._replace(act_scale=np.maximum(act.max(0), act_floor).astype(np.float32))
-    return norm
+    stats = transition_norm(np.asarray(data.observations)[valid],
+                            np.asarray(data.actions)[valid], std_floor, act_floor)
+    same = identity_norm(data.obs_dim, data.act_dim)
+    return IONorm(stats.obs_mean if observations else same.obs_mean,
+                  stats.obs_std if observations else same.obs_std,
+                  stats.act_scale if actions else same.act_scale)
 
 
 def normalise_dataset(data: Dataset, norm: IONorm) -> Dataset:
@@ -114,4 +121,5 @@ def fold_io_norm(params: Params, norm: IONorm) -> Params:
     return out
 
 
-__all__ = ["IONorm", "fit_io_norm", "fold_io_norm", "identity_norm", "normalise_dataset"]
+__all__ = ["IONorm", "fit_io_norm", "fold_io_norm", "identity_norm", "normalise_dataset",
+           "transition_norm"]
