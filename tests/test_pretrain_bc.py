@@ -53,12 +53,23 @@ def test_bc_safe_keeps_only_cheap_episodes():
     assert len(select_transitions(data, None)[0]) == 12 * 10
     cheap = make_dataset(data.observations, data.actions, data.rewards, data.costs + 1.0,
                          data.lengths)
-    with pytest.raises(ValueError, match=r"no episode has cost <= 0 .*lowest episode cost is 10"):
+    with pytest.raises(ValueError, match=r"no episode has cost <= 0 \(episode costs span 10-20\)"):
         select_transitions(cheap, 0.0)
 
 
+def test_cost_band_keeps_exactly_the_band():
+    data = linear_data()  # episode i costs min(i, 10)
+    obs, _ = select_transitions(data, 7.0, 5.0)  # episodes 5, 6, 7
+    np.testing.assert_array_equal(obs, data.observations[5:8].reshape(-1, 4))
+    assert len(select_transitions(data, None, 9.0)[0]) == 3 * 10  # episodes 9-11
+    with pytest.raises(ValueError, match=r"no episode has cost in \[3.5, 3.9\]"):
+        select_transitions(data, 3.9, 3.5)
+    with pytest.raises(ValueError, match=r"BCConfig.min_cost \(5\) must be <= max_cost \(2\)"):
+        BCConfig(min_cost=5.0, max_cost=2.0)
+
+
 @pytest.mark.parametrize("bad", [dict(steps=0), dict(lr=0.0), dict(max_cost=-1.0),
-                                 dict(hidden=1.5)])
+                                 dict(min_cost=-0.5), dict(hidden=1.5)])
 def test_bad_settings_name_the_field(bad):
     with pytest.raises(ValueError, match=f"BCConfig.{next(iter(bad))}"):
         BCConfig(**bad)
@@ -82,6 +93,9 @@ def test_cli_end_to_end(tmp_path):
     safe = CliRunner().invoke(app, ["bc", "--data", str(path), "--max-cost", "0", "--steps",
                                     "20", "--episodes", "2"])
     assert safe.exit_code == 0 and "BC-Safe (cost <= 0): 4 episodes" in safe.output
+    band = CliRunner().invoke(app, ["bc", "--data", str(path), "--min-cost", "1", "--steps", "1"])
+    assert band.exit_code == 1  # no episode costs >= 1: one line, before any fitting
+    assert "error: no episode has cost >= 1 (episode costs span 0-0)" in band.output
 
 def test_synthetic_file_without_a_known_task_is_a_clean_error(tmp_path):
     path = tmp_path / "syn.hdf5"

@@ -96,6 +96,9 @@ def bc(
     max_cost: Annotated[float | None, typer.Option(
         min=0, help="Clone only episodes of cost <= this (BC-Safe); default: all (BC-All).")
     ] = None,
+    min_cost: Annotated[float | None, typer.Option(
+        min=0, help="Clone only episodes of cost >= this (with --max-cost: one cost band).")
+    ] = None,
     steps: Annotated[int, typer.Option(min=1, help="Adam updates of 256 transitions.")] = 20_000,
     episodes: Annotated[int, typer.Option(min=1, help="Evaluation episodes.")] = 20,
     seed: Annotated[int, typer.Option(min=0, help="PRNG seed (init, batches, layouts).")] = 0,
@@ -108,10 +111,11 @@ def bc(
     import envs
     from safecdt_jax.data.dsrl import load_dataset
     from safecdt_jax.data.windows import episode_costs, episode_returns
-    from safecdt_jax.pretrain.bc import BCConfig, cloned_episodes, evaluate_bc, fit_bc
+    from safecdt_jax.pretrain.bc import BCConfig, cloned_episodes, cost_band, evaluate_bc, fit_bc
 
     try:
-        cfg = BCConfig(steps=steps, max_cost=max_cost, chunk=min(1_000, steps))
+        cfg = BCConfig(steps=steps, max_cost=max_cost, min_cost=min_cost,
+                       chunk=min(1_000, steps))
         ds = load_dataset(data)
         task_flag = task is not None
         task = task or ds.attrs.get("task")
@@ -120,14 +124,17 @@ def bc(
         if task not in envs.NAMES:  # before minutes of fitting, not after
             raise ValueError(f"unknown task {task!r} (from {'--task' if task_flag else data}); "
                              f"valid names: {', '.join(envs.NAMES)}")
-        keep = cloned_episodes(ds, max_cost)  # before fitting: no qualifying episode is an error
+        # Before fitting: no qualifying episode is an error.
+        keep = cloned_episodes(ds, max_cost, min_cost)
         key = jax.random.PRNGKey(seed)
         policy, loss = fit_bc(key, ds, cfg)
         returns, costs = evaluate_bc(jax.random.fold_in(key, 1), task, policy, episodes)
     except ValueError as e:  # DatasetError, an unknown task, no qualifying episode: one line
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
-    label = "BC-All" if max_cost is None else f"BC-Safe (cost <= {max_cost:g})"
+    band = cost_band(max_cost, min_cost)
+    label = ("BC-All" if band == "any" else
+             f"BC-Safe (cost {band})" if min_cost is None else f"BC (cost {band})")
     n = int(np.asarray(ds.lengths)[keep].sum())
     typer.echo(f"{label}: {keep.sum()} episodes, {n:,} transitions; data mean return "
                f"{episode_returns(ds)[keep].mean():.2f}, cost {episode_costs(ds)[keep].mean():.2f}")

@@ -5,7 +5,10 @@ task. It sees no return or cost target and no history, so it answers a question 
 answer about itself: whether the actions in the data can be cloned from the observations. With
 `max_cost` it keeps only the episodes of cost <= max_cost (BC-Safe); its rollout cost is then
 what plain imitation of the safe part of the data achieves, a reference that a CDT asked for a
-low cost should match. (Collector-v4 data, 20 episodes: BC-Safe at
+low cost should match. With `min_cost` too it clones one cost band: clones of successive bands
+show whether the data's cost levels survive imitation at all, which a CDT conditioned on a cost
+target needs (on graded CarGoal1 data they do not: the cost-0 band clones worst, section 3 of
+docs/CDT_FINDINGS.md). (Collector-v4 data, 20 episodes: BC-Safe at
 max_cost 0 costs 64-75 per episode on CarGoal1, as a `cpu` CDT trained on careful-only data does,
 37-73; on CarCircle1 it also costs 75, where the CDT, reading its context, gets 4-7 at low
 cost targets.)
@@ -44,7 +47,8 @@ class BCConfig:
       steps: Adam updates (20,000: about 5 passes over 1,000 Goal episodes at batch 256).
       batch: transitions per update (256), drawn uniformly with replacement.
       lr: Adam learning rate (3e-4).
-      max_cost: keep only episodes of cost <= this (BC-Safe); None keeps all (BC-All).
+      max_cost: keep only episodes of cost <= this (BC-Safe); None: no upper bound.
+      min_cost: keep only episodes of cost >= this; None: no lower bound (None and None: BC-All).
       std_floor: smallest observation std used to standardise (0.01; constant sensors).
       chunk: updates per jitted `lax.scan` call (1,000).
     """
@@ -55,6 +59,7 @@ class BCConfig:
     batch: int = 256
     lr: float = 3e-4
     max_cost: float | None = None
+    min_cost: float | None = None
     std_floor: float = 0.01
     chunk: int = 1_000
 
@@ -66,8 +71,13 @@ class BCConfig:
         for name in ("lr", "std_floor"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"BCConfig.{name} must be positive, got {getattr(self, name)!r}")
-        if self.max_cost is not None and not self.max_cost >= 0:
-            raise ValueError(f"BCConfig.max_cost must be >= 0 or None, got {self.max_cost!r}")
+        for name in ("max_cost", "min_cost"):
+            value = getattr(self, name)
+            if value is not None and not value >= 0:
+                raise ValueError(f"BCConfig.{name} must be >= 0 or None, got {value!r}")
+        if None not in (self.min_cost, self.max_cost) and self.min_cost > self.max_cost:
+            raise ValueError(f"BCConfig.min_cost ({self.min_cost:g}) must be <= max_cost "
+                             f"({self.max_cost:g})")
 
 
 class BCPolicy(NamedTuple):
@@ -88,34 +98,47 @@ def bc_action(policy: BCPolicy, obs: jax.Array) -> jax.Array:
     return (x @ w + b) * policy.action_scale
 
 
-def cloned_episodes(data: Dataset, max_cost: float | None) -> np.ndarray:
-    """bool [n_episodes]: the episodes of cost <= `max_cost` (all if None). Raises ValueError
-    if no episode qualifies."""
-    if max_cost is None:
-        return np.ones(data.n_episodes, bool)
+def cloned_episodes(data: Dataset, max_cost: float | None,
+                    min_cost: float | None = None) -> np.ndarray:
+    """bool [n_episodes]: the episodes of cost in [min_cost, max_cost] (a None bound is open).
+    Raises ValueError naming the band and the data's cost range if no episode qualifies."""
     costs = episode_costs(data)
-    if not (costs <= max_cost).any():
-        raise ValueError(f"no episode has cost <= {max_cost:g} (the lowest episode cost is "
-                         f"{costs.min():g})")
-    return costs <= max_cost
+    keep = np.ones(data.n_episodes, bool)
+    if max_cost is not None:
+        keep &= costs <= max_cost
+    if min_cost is not None:
+        keep &= costs >= min_cost
+    if not keep.any():
+        raise ValueError(f"no episode has cost {cost_band(max_cost, min_cost)} (episode costs "
+                         f"span {costs.min():g}-{costs.max():g})")
+    return keep
 
 
-def select_transitions(data: Dataset, max_cost: float | None) -> tuple[np.ndarray, np.ndarray]:
+def cost_band(max_cost: float | None, min_cost: float | None = None) -> str:
+    """The band `cloned_episodes` keeps, as text: '<= 0', '>= 20', 'in [10, 30]' or 'any'."""
+    if min_cost is None:
+        return "any" if max_cost is None else f"<= {max_cost:g}"
+    return f">= {min_cost:g}" if max_cost is None else f"in [{min_cost:g}, {max_cost:g}]"
+
+
+def select_transitions(data: Dataset, max_cost: float | None,
+                       min_cost: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """(observations [N, obs_dim], actions [N, act_dim]) of the valid steps of the episodes
-    `cloned_episodes(data, max_cost)` keeps."""
-    valid = data.valid_steps & cloned_episodes(data, max_cost)[:, None]
+    `cloned_episodes(data, max_cost, min_cost)` keeps."""
+    valid = data.valid_steps & cloned_episodes(data, max_cost, min_cost)[:, None]
     return (np.asarray(data.observations)[valid].astype(np.float32),
             np.asarray(data.actions)[valid].astype(np.float32))
 
 
 def fit_bc(key: jax.Array, data: Dataset, cfg: BCConfig = BCConfig()
            ) -> tuple[BCPolicy, np.ndarray]:
-    """Fits the clone to `data` (the episodes `cfg.max_cost` selects) by minibatch MSE.
+    """Fits the clone to `data` (the episodes `cfg.min_cost`/`cfg.max_cost` select) by
+    minibatch MSE.
 
     Returns the policy and the mean loss of each chunk of `cfg.chunk` updates (squared fraction
     of each action's scale, averaged over action dims). Pure given `key`: same key, same bits.
     """
-    obs, actions = select_transitions(data, cfg.max_cost)
+    obs, actions = select_transitions(data, cfg.max_cost, cfg.min_cost)
     norm = transition_norm(obs, actions, cfg.std_floor, act_floor=1e-6)
     sizes = [obs.shape[1]] + [cfg.hidden] * cfg.layers + [actions.shape[1]]
     k_init, k_train = jax.random.split(key)
