@@ -4,6 +4,7 @@ Policies are checked on synthetic states (pose, layout, cost spent), which compi
 one short real collection (PointCircle1, 3 episodes of 20 steps) covers the env integration.
 """
 
+import dataclasses
 import json
 from types import SimpleNamespace
 
@@ -102,6 +103,33 @@ def test_circle_robot_runs_wide_only_while_behind_schedule():
     np.testing.assert_array_equal(act[0], act[1])  # both behind: same (reckless) command
     np.testing.assert_array_equal(act[2], act[3])  # both ahead: same (careful) command
     assert not np.allclose(act[1], act[2])
+
+
+def test_point_circle_is_graded_between_the_careful_and_the_reckless_circle():
+    # PointCircle1 (collector v5) blends the two circles by the remaining budget's rate; the
+    # same policy switched (full_rate 0) gives the two ends: careful when the budget is spent,
+    # reckless when the rate is at least full_rate.
+    assert family("PointCircle1").full_rate == 0.25 and family("CarCircle1").full_rate == 0.0
+    knobs = {k: jnp.float32(np.mean(v)) for k, v in
+             sample_knobs(jax.random.PRNGKey(0), "PointCircle1", 64).items()}
+    knobs |= {"noise": jnp.float32(0.0), "budget": jnp.float32(100.0)}
+    far = jnp.full((10, 2), 1e3)
+    state = fake_state(jnp.asarray([1.0, 0.0, 0.0]), jnp.zeros(3), far[0], far, far,
+                       jnp.int32(300))  # 200 steps left
+    graded = make_policy("PointCircle1")
+    switched = make_policy("PointCircle1",
+                           fam=dataclasses.replace(family("PointCircle1"), full_rate=0.0))
+    key = jax.random.PRNGKey(0)
+
+    def act(policy, spent, budget=100.0):
+        return np.asarray(policy(dict(knobs, budget=jnp.float32(budget)), state,
+                                 jnp.float32(spent), key))
+
+    careful, reckless = act(switched, 100.0), act(switched, 0.0, budget=1000.0)
+    np.testing.assert_allclose(act(graded, 100.0), careful, atol=1e-6)  # nothing left: careful
+    np.testing.assert_allclose(act(graded, 0.0), reckless, atol=1e-6)  # 0.5 per step left
+    between = act(graded, 75.0)  # 25 left over 200 steps: boldness 0.5
+    assert not np.allclose(between, careful) and not np.allclose(between, reckless)
 
 
 def test_knobs_in_ranges_and_budget_mixture():

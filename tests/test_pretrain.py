@@ -31,6 +31,7 @@ from safecdt_jax.pretrain import (
     run_key,
     stream_key,
 )
+from safecdt_jax.pretrain.checkpoint import token_scales
 from safecdt_jax.pretrain.normalize import IONorm, fold_io_norm
 
 TASK = "Synthetic"
@@ -245,3 +246,16 @@ def test_shuffle_gaps_are_zero_for_a_token_the_model_cannot_see(full_run, data_f
                                    str(data_file), "--windows", "64", "--seed", "3"])
     assert cli.exit_code == 0, cli.output
     assert f"| costs_to_go | {gaps['costs_to_go']:.5f} |" in cli.output
+
+
+def test_cli_cost_token_options_reach_the_checkpoint(data_file, tmp_path):
+    runner, out = CliRunner(), tmp_path / "token"
+    args = ["pretrain", "--data", str(data_file), "--preset", "tiny", "--steps", "2",
+            "--batch", "4", "--chunk", "2", "--out", str(out)]
+    result = runner.invoke(app, [*args, "--cost-scale", "0.025", "--cost-offset", "1"])
+    assert result.exit_code == 0, result.output
+    meta = load_checkpoint(out).meta
+    assert meta["pretrain"]["cost_scale"] == 0.025 and meta["model"]["cost_offset"] == 1.0
+    assert token_scales(meta) == (0.1, 0.025)  # what evaluate and deploy will use
+    bad = runner.invoke(app, [*args, "--overwrite", "--cost-scale", "0"])
+    assert bad.exit_code == 1 and "error: PretrainConfig.cost_scale" in bad.output

@@ -35,19 +35,33 @@ def pretrain(
     standardize_obs: Annotated[bool, typer.Option(
         help="Train on observations standardised by the data's mean and std (folded into "
              "the saved weights).")] = False,
+    cost_scale: Annotated[float | None, typer.Option(
+        help="Cost-to-go tokens are raw CTG times this (default: the preset's; cpu 0.1, "
+             "OSRL 1).")] = None,
+    cost_offset: Annotated[float | None, typer.Option(
+        help="The model reads cost_offset - scaled CTG (default: the preset's; cpu 5, "
+             "OSRL 50).")] = None,
 ) -> None:
-    """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs."""
+    """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs.
+
+    `--cost-scale` and `--cost-offset` set the cost-to-go token; evaluate and deploy read both
+    back from the checkpoint. The token passes a LayerNorm that keeps only its direction once
+    the scaled input outweighs the bias, so it should span about [-1, 1] over the cost-to-go
+    range that matters (docs/CDT_FINDINGS.md, section 1): e.g. 0.025 and 1 for 0-80.
+    """
     from safecdt_jax import pretrain as pt
 
     overrides = {"seed": seed, "scale_actions": scale_actions,
                  "standardize_obs": standardize_obs}
-    for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk)):
+    for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk),
+                        ("cost_scale", cost_scale)):
         if value is not None:
             overrides[name] = value
+    model = {} if cost_offset is None else {"cost_offset": cost_offset}
     try:
         cfg = pt.default_pretrain(preset, **overrides)
         result = pt.pretrain(data, out, preset=preset, config=cfg, task=task, resume=resume,
-                             overwrite=overwrite)
+                             overwrite=overwrite, model_overrides=model)
     except ValueError as e:  # CheckpointError, DatasetError and bad settings: one clean line
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e

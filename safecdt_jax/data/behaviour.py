@@ -10,9 +10,11 @@ agility. Otherwise it is *careful*: it avoids the costly regions and drives slow
 way, an episode's share of reckless steps is set by its cost rate, which its cost-to-go reveals
 at every step (about rate x steps left), as in data of policies trained under different cost
 limits; a budget spent early would instead leave most steps with a cost-to-go of 0 and let the
-model pick its mode from the return target. Budgets of 0 give careful episodes, and the other
-knobs (speed, steering gain, look-ahead, noise, avoidance strength and clearance, caution,
-target circle radius) spread the returns at every cost.
+model pick its mode from the return target. The Point on Circle is graded instead of switched
+(`CircleFamily.full_rate`): one reckless excursion of it costs about 60, more than most
+budgets. Budgets of 0 give careful episodes, and the other knobs (speed, steering gain,
+look-ahead, noise, avoidance strength and clearance, caution, target circle radius) spread the
+returns at every cost.
 
 Policies read the true pose (`state.data.qpos[:3]`, `qvel[:2]`) and the task layout
 (`state.task`), never the observation, plus `spent`, the episode's cost so far (the collector
@@ -210,6 +212,13 @@ class CircleFamily:
         buy little return.
       p_careful: probability of a careful episode (budget 0).
       zone: m, see `caution` (a constant, not drawn).
+      full_rate: 0 (the default) switches between the two circles by the schedule. Positive,
+        the robot is graded instead (collector v5, the Point's default): every step it blends
+        the careful and the reckless circle (radius, wall clamp, slow-down, return push) by a
+        boldness `clip(remaining budget / steps left / full_rate, 0, 1)`, full_rate in cost
+        steps per step (a constant, not drawn). A switch overshoots small budgets when one
+        reckless excursion costs much (the Point's: about 60, so a budget of 0.5-10 cost 62);
+        graded, the cost follows the budget (0.5-5: 3.4, 5-10: 14, 10-30: 30).
     """
 
     speed: Range = (0.3, 1.0)
@@ -225,11 +234,15 @@ class CircleFamily:
     caution: Range = (0.4, 0.9)
     p_careful: float = 0.15
     zone: float = 0.6
+    full_rate: float = 0.0
 
 
 # The Car turns at most 1.26 rad/s and its turn command takes room from the forward one, so high
 # steering gains saturate the turn and stall it; the Point's servo turns 3 rad/s and likes more.
 CAR_TURN_GAIN: Range = (1.0, 3.0)
+# The Point circles at 1.5 m/s and its momentum carries it far beyond a wall: graded, reckless
+# at a remaining rate of 0.25 cost steps per step (see `CircleFamily.full_rate`).
+POINT_CIRCLE_FULL_RATE = 0.25
 
 
 def family(task: str) -> GoalFamily | CircleFamily:
@@ -239,6 +252,8 @@ def family(task: str) -> GoalFamily | CircleFamily:
     fam = GoalFamily() if "Goal" in task else CircleFamily()
     if task.startswith("Car"):
         fam = dataclasses.replace(fam, turn_gain=CAR_TURN_GAIN)
+    elif isinstance(fam, CircleFamily):
+        fam = dataclasses.replace(fam, full_rate=POINT_CIRCLE_FULL_RATE)
     return fam
 
 
@@ -357,26 +372,32 @@ def circle_policy(drive: Drive, params: EnvParams, horizon: int,
     def policy(knobs: Knobs, state: State, spent: jax.Array, key: jax.Array) -> jax.Array:
         xy, heading, vel = pose(drive, state)
         p = xy + knobs["lookahead"] * vel
-        careful = spent >= schedule(knobs, state.info["steps"], horizon)
+        steps = state.info["steps"]
+        if fam.full_rate > 0:  # graded: boldness from the remaining budget's rate
+            rate = jnp.maximum(knobs["budget"] - spent, 0.0) / jnp.maximum(horizon - steps, 1)
+            bold = jnp.clip(rate / fam.full_rate, 0.0, 1.0)
+        else:  # switched: reckless exactly while behind the schedule
+            bold = (spent < schedule(knobs, steps, horizon)).astype(jnp.float32)
         angle = jnp.arctan2(p[1], p[0]) + knobs["lead"]
         # Chasing a point ahead cuts inside the circle (to about radius * cos(lead)); the
         # reckless chase corrects for it, so that its `reach` is the circle it really runs.
-        radius = jnp.where(careful, knobs["radius"], knobs["reach"] / jnp.cos(knobs["lead"]))
+        radius = (1.0 - bold) * knobs["radius"] + bold * knobs["reach"] / jnp.cos(knobs["lead"])
         target = radius * jnp.stack([jnp.cos(angle), jnp.sin(angle)])
         costly = jnp.stack([jnp.float32(1.0), params.boundary_y]) > 0  # which axes have walls
         wall = knobs["wall"]
-        target = jnp.where(costly & careful, wall * jnp.tanh(target / wall), target)
+        clamped = (1.0 - bold) * wall * jnp.tanh(target / wall) + bold * target
+        target = jnp.where(costly, clamped, target)
         # Careful but out of bounds (after a reckless spell): head back in across the wall, at
         # full agility; the chased point alone would lead along the wall, outside.
         out_axes = costly & (jnp.abs(xy) > params.boundary)
         out = jnp.any(out_axes)
         back = jnp.where(out_axes, -2.0 * jnp.sign(xy), 0.0)
-        desired = target - p + jnp.where(careful, back, 0.0)
+        desired = target - p + (1.0 - bold) * back
         forward, turn = steer(drive, heading, desired, knobs["speed"], knobs["turn_gain"])
         near = jnp.clip((jnp.abs(p) - (params.boundary - fam.zone)) / fam.zone, 0.0, 1.0)
         near = jnp.max(jnp.where(costly, near, 0.0))
         slow = 1.0 - knobs["caution"] * (0.5 + 0.5 * near)
-        forward = forward * jnp.where(careful & ~out, slow, 1.0)
+        forward = forward * jnp.where(out, 1.0, bold + (1.0 - bold) * slow)
         forward, turn = _noisy(forward, turn, knobs["noise"], key)
         return actuate(drive, forward, turn)
 

@@ -32,7 +32,7 @@ from safecdt_jax.data.dsrl import write_dataset
 
 # Bump whenever the behaviour policies, their knob ranges or the collection loop change: cached
 # data sets written by another version are collected again.
-COLLECTOR_VERSION = 4
+COLLECTOR_VERSION = 5  # 5: the Point runs the graded Circle family (Car and Goal data as in 4)
 DEFAULT_EPISODES = 1000  # as DSRL's data sets (>= 1000 episodes per task)
 DEFAULT_CHUNK = 100  # episodes per compiled call: ~29 MB of CarGoal observations
 
