@@ -7,8 +7,8 @@ answer about itself: whether the actions in the data can be cloned from the obse
 what plain imitation of the safe part of the data achieves, a reference that a CDT asked for a
 low cost should match. With `min_cost` too it clones one cost band: clones of successive bands
 show whether the data's cost levels survive imitation at all, which a CDT conditioned on a cost
-target needs (on graded CarGoal1 data they do not: the cost-0 band clones worst, section 3 of
-docs/CDT_FINDINGS.md). (Collector-v4 data, 20 episodes: BC-Safe at
+target needs (on CarGoal1 they do not: every band's clone costs about 50 per episode, section
+3 of docs/CDT_FINDINGS.md). (Collector-v4 data, 20 episodes: BC-Safe at
 max_cost 0 costs 64-75 per episode on CarGoal1, as a `cpu` CDT trained on careful-only data does,
 37-73; on CarCircle1 it also costs 75, where the CDT, reading its context, gets 4-7 at low
 cost targets.)
