@@ -32,7 +32,7 @@ class PretrainConfig:
             then fold the scale into the saved weights (`safecdt_jax.pretrain.normalize`), which
             emit raw actions either way. Off by default, as in OSRL, whose agents' actions fill
             [-1, 1]; the Car's scripted wheel commands stay within +-0.02 (its actuators
-            saturate there). Measured effects: README, "Pretraining units".
+            saturate there). Measured effects: docs/CDT_FINDINGS.md, sections 1 and 2.
         standardize_obs: train on observations standardised by the data's mean and std (also
             folded into the weights). Off by default: on CarCircle1 it loses the cost response.
         checkpoint_every: write a checkpoint whenever a chunk ends at or past a multiple of this
