@@ -9,6 +9,7 @@ import numpy as np
 
 from safecdt_jax.data.dataset import Dataset, atomic_path
 from safecdt_jax.data.dsrl import load_dataset
+from safecdt_jax.data.windows import episode_costs, episode_returns
 
 
 def _num(x) -> float | None:
@@ -42,9 +43,7 @@ def summarize_dataset(
     if not isinstance(data, Dataset):
         data = load_dataset(data)
     lengths = np.asarray(data.lengths)
-    valid = data.valid_steps
-    returns = np.where(valid, np.asarray(data.rewards, np.float64), 0.0).sum(axis=1)
-    costs = np.where(valid, np.asarray(data.costs, np.float64), 0.0).sum(axis=1)
+    returns, costs = episode_returns(data), episode_costs(data)  # float64 sums over valid steps
     if returns.size == 0:
         raise ValueError("summarize_dataset: the data set has no episodes")
 
