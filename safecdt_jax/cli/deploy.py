@@ -152,13 +152,35 @@ def evaluate(
         help="Comma-separated RETURN:COST targets (raw units), e.g. 40:20,40:40.")],
     episodes: Annotated[int, typer.Option(min=1, help="Episodes per target.")] = 20,
     seed: Annotated[int, typer.Option(min=0, help="PRNG seed (layouts).")] = 0,
+    horizon: Annotated[int | None, typer.Option(
+        min=1, help="Cut every episode at this many steps (default: the task's).")] = None,
+    data: Annotated[Path | None, typer.Option(
+        help="Data set to compare with: prints its median episode cost.")] = None,
+    out: Annotated[Path | None, typer.Option(
+        help="Also write the summary and every episode's return and cost here (JSON).")] = None,
 ) -> None:
-    """Rolls out the CDT for each (return, cost) target; prints mean return, cost and VR."""
+    """Rolls out the CDT for each (return, cost) target; prints mean return, cost and VR, and
+    how the mean cost follows the cost target (Spearman, per return target)."""
+    import json
+
     try:
-        from safecdt_jax.deploy.evaluate import evaluate_checkpoint, parse_targets
+        from safecdt_jax.data.dataset import write_text_atomic
+        from safecdt_jax.deploy.evaluate import (
+            data_median_cost,
+            evaluate_checkpoint,
+            evaluation_table,
+            parse_targets,
+        )
 
         pairs = parse_targets(targets)
-        table = evaluate_checkpoint(ckpt, task, pairs, episodes, seed)
-    except ValueError as e:
+        median = None if data is None else data_median_cost(data)
+        summary = evaluate_checkpoint(ckpt, task, pairs, episodes, seed, horizon, median)
+    except (ValueError, OSError) as e:  # bad targets, task, checkpoint or data file: one line
         _fail(e)
-    typer.echo(table)
+    typer.echo(evaluation_table(summary))
+    if out is not None:
+        try:
+            write_text_atomic(out, json.dumps(summary, indent=1))
+        except OSError as e:
+            _fail(e)
+        typer.echo(f"wrote {out}")

@@ -12,6 +12,7 @@ import os
 import tempfile
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import jax
@@ -271,6 +272,13 @@ def atomic_path(path: str | os.PathLike, suffix: str = ""):
         if os.path.exists(tmp):
             os.remove(tmp)
         raise
+
+
+def write_text_atomic(path: str | os.PathLike, text: str) -> Path:
+    """Write `text` to `path` atomically (see `atomic_path`); returns the path."""
+    with atomic_path(path, suffix=Path(path).suffix) as tmp:
+        Path(tmp).write_text(text)
+    return Path(path)
 
 
 def encode_attr(value: Any) -> Any:

@@ -1,8 +1,19 @@
-"""Evaluate a pretrained CDT at several (return, cost) targets in one vmapped program."""
+"""Evaluate a pretrained CDT at several (return, cost) targets in one vmapped program, and say
+how well its cost follows the cost target.
+
+    res = evaluate_policy(ckpt, "PointCircle1", [(14.9, 10), (14.9, 20), (14.9, 40)], episodes=20)
+    summary = summarize_evaluation("PointCircle1", res, data_median=38.0)
+    print(evaluation_table(summary))   # per-target means, Spearman, the data's median cost
+
+Issue 4's check of a pretrained CDT reads off the summary: the Spearman rank correlation of the
+mean episode cost with the cost target at one return target (>= 0.8 wanted), and the mean cost
+at a low target against the data's median episode cost.
+"""
 
 from __future__ import annotations
 
 import os
+from typing import Any
 
 import jax
 import numpy as np
@@ -19,6 +30,8 @@ def parse_targets(text: str) -> list[tuple[float, float]]:
             ret, cost = float(parts[0]), float(parts[1])
         except ValueError:
             raise ValueError(f"bad target {item!r}: expected RETURN:COST, e.g. 40:20") from None
+        if not (np.isfinite(ret) and np.isfinite(cost)):
+            raise ValueError(f"bad target {item!r}: targets must be finite numbers")
         if cost < 0:
             raise ValueError(f"bad target {item!r}: the cost target must be >= 0")
         out.append((ret, cost))
@@ -26,11 +39,14 @@ def parse_targets(text: str) -> list[tuple[float, float]]:
 
 
 def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
-                    episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
+                    episodes: int, seed: int = 0, horizon: int | None = None
+                    ) -> dict[str, np.ndarray]:
     """Episode returns and costs [n_targets, episodes] of checkpoint `ckpt` in `task`.
 
     Every target runs on the same `episodes` layouts (keys from `seed`), in one jitted call,
-    with the checkpoint's own token scales.
+    with the checkpoint's own token scales. `horizon` cuts every episode at that many steps
+    (default: the task's time limit). Also returns the targets as `target_return` and
+    `target_cost` [n_targets] (raw units).
     """
     import envs
     from safecdt_jax.deploy.rollout import evaluate_targets
@@ -39,26 +55,104 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     env, params = envs.make(task)
     policy = load_policy(ckpt, task=task)
     reward_scale, cost_scale = token_scales(policy.meta)
-    rets = np.array([t[0] for t in targets], np.float32)
-    costs = np.array([t[1] for t in targets], np.float32)
+    rets = np.array([t[0] for t in targets])  # float64: reported as given
+    costs = np.array([t[1] for t in targets])
     fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, policy.cfg, r, c,
                                                   episodes, reward_scale=reward_scale,
-                                                  cost_scale=cost_scale))
-    res = jax.device_get(fn(jax.random.PRNGKey(seed), rets, costs))
+                                                  cost_scale=cost_scale, horizon=horizon))
+    res = jax.device_get(fn(jax.random.PRNGKey(seed), rets.astype(np.float32),
+                            costs.astype(np.float32)))
     return {"target_return": rets, "target_cost": costs, "returns": np.asarray(res.returns),
             "costs": np.asarray(res.costs)}
 
 
-def evaluate_checkpoint(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
-                        episodes: int, seed: int = 0) -> str:
-    """A markdown table: per target, mean return, mean cost and VR (% of episodes whose cost
-    exceeds the target's cost)."""
-    res = evaluate_policy(ckpt, task, targets, episodes, seed)
-    lines = [f"{task}, {episodes} episodes per target", "",
+def _ranks(values: np.ndarray) -> np.ndarray:
+    """1-based ranks of `values`; tied values share the mean of the ranks they span."""
+    order = np.argsort(values, kind="stable")
+    ranks = np.empty(len(values))
+    ranks[order] = np.arange(1, len(values) + 1)
+    for v in np.unique(values):
+        tied = values == v
+        ranks[tied] = ranks[tied].mean()
+    return ranks
+
+
+def spearman(x, y) -> float:
+    """Spearman's rank correlation of two equal-length sequences, in [-1, 1]: the Pearson
+    correlation of their ranks (ties share their mean rank). NaN when either sequence has fewer
+    than two distinct values, where the correlation is undefined."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    if x.shape != y.shape or x.ndim != 1:
+        raise ValueError(f"spearman needs two 1-d sequences of one length, got {x.shape} and "
+                         f"{y.shape}")
+    if len(np.unique(x)) < 2 or len(np.unique(y)) < 2:
+        return float("nan")
+    return float(np.corrcoef(_ranks(x), _ranks(y))[0, 1])
+
+
+def summarize_evaluation(task: str, res: dict[str, np.ndarray],
+                         data_median: float | None = None) -> dict[str, Any]:
+    """A JSON-ready summary of an `evaluate_policy` result.
+
+    Holds the per-target rows (mean return, mean cost, VR: % of episodes whose cost exceeds the
+    target's cost), the per-episode returns and costs, and, for every return target run at two
+    or more distinct cost targets, the Spearman correlation of mean cost with cost target (None
+    where the mean costs all tie).
+    `data_median` (the data set's median episode cost, cost steps) is kept for comparison.
+    """
+    rets, costs = res["target_return"], res["target_cost"]
+    mean_cost = res["costs"].mean(axis=1)
+    rows = [{"target_return": float(r), "target_cost": float(c),
+             "mean_return": float(res["returns"][i].mean()), "mean_cost": float(mean_cost[i]),
+             "vr_percent": float(100 * (res["costs"][i] > c).mean())}
+            for i, (r, c) in enumerate(zip(rets, costs, strict=True))]
+    following = []
+    for r in dict.fromkeys(rets.tolist()):  # return targets in the order given
+        at = rets == r
+        if len(np.unique(costs[at])) >= 2:
+            rho = spearman(costs[at], mean_cost[at])  # NaN (JSON null) if all costs tie
+            following.append({"target_return": float(r),
+                              "spearman": None if np.isnan(rho) else rho})
+    return {"task": task, "episodes": int(res["costs"].shape[1]), "rows": rows,
+            "cost_following": following,
+            "data_median_cost": None if data_median is None else float(data_median),
+            "returns": res["returns"].tolist(), "costs": res["costs"].tolist()}
+
+
+def evaluation_table(summary: dict[str, Any]) -> str:
+    """Markdown: the per-target table of `summarize_evaluation`, then one line per return target
+    with the Spearman correlation of mean cost with cost target, and the data's median cost."""
+    lines = [f"{summary['task']}, {summary['episodes']} episodes per target", "",
              "| target return | target cost | mean return | mean cost | VR (%) |",
              "|---|---|---|---|---|"]
-    for i, (ret, cost) in enumerate(targets):
-        r, c = res["returns"][i], res["costs"][i]
-        lines.append(f"| {ret:g} | {cost:g} | {r.mean():.2f} | {c.mean():.1f} | "
-                     f"{100 * (c > cost).mean():.0f} |")
+    lines += [f"| {row['target_return']:g} | {row['target_cost']:g} | {row['mean_return']:.2f} | "
+              f"{row['mean_cost']:.1f} | {row['vr_percent']:.0f} |" for row in summary["rows"]]
+    if summary["cost_following"]:
+        lines.append("")
+    for f in summary["cost_following"]:
+        rho = "undefined (equal mean costs)" if f["spearman"] is None else f"{f['spearman']:.2f}"
+        lines.append(f"cost follows the target at return {f['target_return']:g}: Spearman {rho}")
+    median = summary["data_median_cost"]
+    if median is not None:
+        below = [f"{row['target_return']:g}:{row['target_cost']:g}" for row in summary["rows"]
+                 if row["mean_cost"] < median]
+        lines.append(f"data median episode cost {median:.1f}; mean cost below it at targets "
+                     f"(RETURN:COST): {', '.join(below) or 'none'}")
     return "\n".join(lines)
+
+
+def data_median_cost(path: str | os.PathLike) -> float:
+    """Median episode cost (cost steps) of the DSRL-format data set at `path`."""
+    from safecdt_jax.data import episode_costs, load_dataset
+
+    return float(np.median(episode_costs(load_dataset(path))))
+
+
+def evaluate_checkpoint(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
+                        episodes: int, seed: int = 0, horizon: int | None = None,
+                        data_median: float | None = None) -> dict[str, Any]:
+    """`evaluate_policy` then `summarize_evaluation`: the summary dict, with the checkpoint
+    folder, seed and horizon added (see `evaluation_table` to print it)."""
+    res = evaluate_policy(ckpt, task, targets, episodes, seed, horizon)
+    summary = summarize_evaluation(task, res, data_median)
+    return {"checkpoint": os.fspath(ckpt), "seed": seed, "horizon": horizon, **summary}

@@ -180,12 +180,13 @@ def run_label(run: dict[str, Any], budgets: int) -> str:
 
 def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: str) -> list[Path]:
     """Write `results.json`, `table.md` and the figures into `out_dir` (each atomically)."""
+    from safecdt_jax.data.dataset import write_text_atomic
     from safecdt_jax.report.figures import plot_deployment
     from safecdt_jax.report.tables import markdown_table
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    written = [_atomic_text(out / "results.json", json.dumps(results, indent=1))]
+    written = [write_text_atomic(out / "results.json", json.dumps(results, indent=1))]
     budgets = sorted({run["budget"] for run in results["runs"]})
     rows = [dict(run["summary"], label=run_label(run, len(budgets))) for run in results["runs"]]
     timing = results["timing"]
@@ -194,7 +195,7 @@ def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: st
               f"reward, cost and VR as mean ± std over seeds (population std); "
               f"deployment {timing['deploy_s']:.0f} s "
               f"({timing['env_steps_per_s']:,.0f} env steps/s).\n\n")
-    written.append(_atomic_text(out / "table.md", header + markdown_table(rows)))
+    written.append(write_text_atomic(out / "table.md", header + markdown_table(rows)))
     for budget in budgets:
         runs = {run_label(r, 1): r["metrics"] for r in results["runs"] if r["budget"] == budget}
         folder = out if len(budgets) == 1 else out / f"budget_{budget:g}"
@@ -202,10 +203,3 @@ def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: st
         written += [Path(p) for p in figures]
     return written
 
-
-def _atomic_text(path: Path, text: str) -> Path:
-    from safecdt_jax.data.dataset import atomic_path
-
-    with atomic_path(path, suffix=path.suffix) as tmp:
-        Path(tmp).write_text(text)
-    return path

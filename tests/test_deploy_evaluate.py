@@ -1,0 +1,117 @@
+"""`safecdt-jax evaluate`: target parsing, Spearman, the summary and its table, the CLI."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from safecdt_jax.cli import app
+from safecdt_jax.deploy.evaluate import (
+    data_median_cost,
+    evaluate_policy,
+    evaluation_table,
+    parse_targets,
+    spearman,
+    summarize_evaluation,
+)
+
+TASK = "PointCircle1"
+
+
+def test_parse_targets_and_its_errors():
+    assert parse_targets("40:20, 14.9:0") == [(40.0, 20.0), (14.9, 0.0)]
+    for text, message in [("40", "expected RETURN:COST"), ("40:x", "expected RETURN:COST"),
+                          ("40:20:1", "expected RETURN:COST"), ("40:-1", "must be >= 0"),
+                          ("nan:20", "finite")]:
+        with pytest.raises(ValueError, match=message):
+            parse_targets(text)
+
+
+def test_spearman_known_values():
+    targets = [10, 20, 40, 80]
+    assert spearman(targets, [2.6, 5.3, 7.4, 18.2]) == pytest.approx(1.0)
+    assert spearman(targets, [18.2, 7.4, 5.3, 2.6]) == pytest.approx(-1.0)
+    # PointCircle1 seed 3 (docs/CDT_FINDINGS.md, section 5): ranks 3, 1, 2, 4.
+    assert spearman(targets, [92.6, 72.7, 90.2, 133.7]) == pytest.approx(0.4)
+    # Ties share their mean rank: ranks (1, 2, 3) against (1.5, 1.5, 3).
+    assert spearman([1, 2, 3], [5, 5, 7]) == pytest.approx(1.5 / np.sqrt(3.0))
+    assert np.isnan(spearman(targets, [5.0, 5.0, 5.0, 5.0]))
+    with pytest.raises(ValueError, match="one length"):
+        spearman([1, 2, 3], [1, 2])
+
+
+def test_summary_rows_spearman_and_median_line():
+    res = {"target_return": np.array([10.0, 10.0, 10.0, 20.0]),
+           "target_cost": np.array([10.0, 20.0, 40.0, 10.0]),
+           "returns": np.array([[1.0, 3.0], [2.0, 2.0], [4.0, 4.0], [5.0, 7.0]]),
+           "costs": np.array([[0.0, 30.0], [50.0, 10.0], [20.0, 60.0], [5.0, 5.0]])}
+    s = summarize_evaluation(TASK, res, data_median=25.0)
+    assert [r["mean_cost"] for r in s["rows"]] == [15.0, 30.0, 40.0, 5.0]
+    assert [r["mean_return"] for r in s["rows"]] == [2.0, 2.0, 4.0, 6.0]
+    assert [r["vr_percent"] for r in s["rows"]] == [50.0, 50.0, 50.0, 0.0]
+    # Only return 10 ran at several cost targets; its mean costs rise with them.
+    assert s["cost_following"] == [{"target_return": 10.0, "spearman": pytest.approx(1.0)}]
+    table = evaluation_table(s)
+    assert "| 10 | 20 | 2.00 | 30.0 | 50 |" in table
+    assert "cost follows the target at return 10: Spearman 1.00" in table
+    assert ("data median episode cost 25.0; mean cost below it at targets (RETURN:COST): "
+            "10:10, 20:10") in table
+    json.dumps(s, allow_nan=False)  # strict JSON
+
+    res["costs"][:3] = 7.0  # equal mean costs: the correlation is undefined, null in JSON
+    s = summarize_evaluation(TASK, res)
+    assert s["cost_following"][0]["spearman"] is None and s["data_median_cost"] is None
+    assert "Spearman undefined" in evaluation_table(s)
+    json.dumps(s, allow_nan=False)
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A 4-episode PointCircle1 data set (20 steps each) and a tiny CDT pretrained 2 updates."""
+    from safecdt_jax.data.collect import collect, write_collected
+    from safecdt_jax.pretrain import default_pretrain, pretrain
+
+    tmp = tmp_path_factory.mktemp("evaluate")
+    data = write_collected(tmp / "PointCircle1.hdf5",
+                           collect(jax.random.PRNGKey(0), TASK, 4, horizon=20))
+    cfg = default_pretrain("tiny", steps=2, chunk=2)
+    ckpt = pretrain(data, tmp / "ckpt", preset="tiny", config=cfg, progress=False).path
+    return data, ckpt, tmp
+
+
+def test_cli_evaluate_prints_and_writes_the_summary(tiny_run):
+    data, ckpt, tmp = tiny_run
+    out = tmp / "eval.json"
+    args = ["evaluate", "--ckpt", str(ckpt), "--task", TASK, "--targets", "5:0,5:10,5:40",
+            "--episodes", "2", "--horizon", "12", "--seed", "3"]
+    result = CliRunner().invoke(app, [*args, "--data", str(data), "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    summary = json.loads(out.read_text())
+    assert np.shape(summary["costs"]) == (3, 2) and summary["horizon"] == 12
+    assert summary["data_median_cost"] == data_median_cost(data)
+    assert f"data median episode cost {summary['data_median_cost']:.1f}" in result.output
+    assert "cost follows the target at return 5: Spearman" in result.output
+    # The CLI's numbers are evaluate_policy's: same key, same layouts, same bits.
+    res = evaluate_policy(ckpt, TASK, [(5.0, 0.0), (5.0, 10.0), (5.0, 40.0)], 2, seed=3,
+                          horizon=12)
+    np.testing.assert_array_equal(np.asarray(summary["costs"]), res["costs"])
+    np.testing.assert_array_equal(np.asarray(summary["returns"]), res["returns"])
+    assert not list(tmp.glob(".tmp-*"))  # written atomically: no temporary left behind
+
+
+@pytest.mark.parametrize("flag,value,message", [
+    ("--targets", "5:-1", "must be >= 0"),
+    ("--data", "missing.hdf5", "file not found"),
+    ("--task", "CarGoal1", "does not fit task CarGoal1"),
+])
+def test_cli_evaluate_bad_input_is_one_clear_line(tiny_run, flag, value, message):
+    _, ckpt, tmp = tiny_run
+    args = {"--ckpt": str(ckpt), "--task": TASK, "--targets": "5:0,5:10", "--episodes": "1",
+            "--horizon": "4"}
+    args[flag] = str(tmp / value) if flag == "--data" else value
+    result = CliRunner().invoke(app, ["evaluate", *[x for kv in args.items() for x in kv]])
+    assert result.exit_code == 1
+    assert message in result.output and "Traceback" not in result.output
+    assert len(result.output.strip().splitlines()) == 1
