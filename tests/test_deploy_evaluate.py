@@ -8,8 +8,8 @@ import pytest
 from typer.testing import CliRunner
 
 from safecdt_jax.cli import app
+from safecdt_jax.data import episode_costs, load_dataset
 from safecdt_jax.deploy.evaluate import (
-    data_median_cost,
     evaluate_policy,
     evaluation_table,
     parse_targets,
@@ -90,7 +90,7 @@ def test_cli_evaluate_prints_and_writes_the_summary(tiny_run):
     assert result.exit_code == 0, result.output
     summary = json.loads(out.read_text())
     assert np.shape(summary["costs"]) == (3, 2) and summary["horizon"] == 12
-    assert summary["data_median_cost"] == data_median_cost(data)
+    assert summary["data_median_cost"] == float(np.median(episode_costs(load_dataset(data))))
     assert f"data median episode cost {summary['data_median_cost']:.1f}" in result.output
     assert "cost follows the target at return 5: Spearman" in result.output
     # The CLI's numbers are evaluate_policy's: same key, same layouts, same bits.

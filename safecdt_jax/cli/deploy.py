@@ -164,16 +164,16 @@ def evaluate(
     import json
 
     try:
+        from safecdt_jax.data import summarize_dataset
         from safecdt_jax.data.dataset import write_text_atomic
         from safecdt_jax.deploy.evaluate import (
-            data_median_cost,
             evaluate_checkpoint,
             evaluation_table,
             parse_targets,
         )
 
         pairs = parse_targets(targets)
-        median = None if data is None else data_median_cost(data)
+        median = None if data is None else summarize_dataset(data)["cost_median"]
         summary = evaluate_checkpoint(ckpt, task, pairs, episodes, seed, horizon, median)
     except (ValueError, OSError) as e:  # bad targets, task, checkpoint or data file: one line
         _fail(e)

@@ -2,7 +2,8 @@
 how well its cost follows the cost target.
 
     res = evaluate_policy(ckpt, "PointCircle1", [(14.9, 10), (14.9, 20), (14.9, 40)], episodes=20)
-    summary = summarize_evaluation("PointCircle1", res, data_median=38.0)
+    median = summarize_dataset(data_path)["cost_median"]          # the data's, cost steps
+    summary = summarize_evaluation("PointCircle1", res, data_median=median)
     print(evaluation_table(summary))   # per-target means, Spearman, the data's median cost
 
 Issue 4's check of a pretrained CDT reads off the summary: the Spearman rank correlation of the
@@ -139,13 +140,6 @@ def evaluation_table(summary: dict[str, Any]) -> str:
         lines.append(f"data median episode cost {median:.1f}; mean cost below it at targets "
                      f"(RETURN:COST): {', '.join(below) or 'none'}")
     return "\n".join(lines)
-
-
-def data_median_cost(path: str | os.PathLike) -> float:
-    """Median episode cost (cost steps) of the DSRL-format data set at `path`."""
-    from safecdt_jax.data import episode_costs, load_dataset
-
-    return float(np.median(episode_costs(load_dataset(path))))
 
 
 def evaluate_checkpoint(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
