@@ -250,12 +250,17 @@ def test_shuffle_gaps_are_zero_for_a_token_the_model_cannot_see(full_run, data_f
 
 def test_cli_cost_token_options_reach_the_checkpoint(data_file, tmp_path):
     runner, out = CliRunner(), tmp_path / "token"
-    args = ["pretrain", "--data", str(data_file), "--preset", "tiny", "--steps", "2",
-            "--batch", "4", "--chunk", "2", "--out", str(out)]
+    args = ["pretrain", "--data", str(data_file), "--preset", "tiny", "--steps", "3",
+            "--batch", "4", "--chunk", "1", "--out", str(out)]
     result = runner.invoke(app, [*args, "--cost-scale", "0.025", "--cost-offset", "1"])
     assert result.exit_code == 0, result.output
     meta = load_checkpoint(out).meta
     assert meta["pretrain"]["cost_scale"] == 0.025 and meta["model"]["cost_offset"] == 1.0
+    # The summary line ends on the mean of the last chunks (here all 3), not on the last one.
+    loss = meta["history"]["loss"]
+    assert len(loss) == 3 and f"{sum(loss) / 3:.3f}" != f"{loss[-1]:.3f}"
+    assert f"-> {sum(loss) / 3:.3f}, action" in result.output
+    assert "(first chunk -> mean of the last 3)" in result.output
     assert token_scales(meta) == (0.1, 0.025)  # what evaluate and deploy will use
     bad = runner.invoke(app, [*args, "--overwrite", "--cost-scale", "0"])
     assert bad.exit_code == 1 and "error: PretrainConfig.cost_scale" in bad.output
