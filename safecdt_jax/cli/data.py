@@ -18,17 +18,23 @@ def _fail(message: str) -> None:
 @app.command("collect")
 def collect_cmd(
     task: Annotated[str, typer.Option(help="Task, e.g. CarGoal1: {Car,Point}{Goal,Circle}{1,2}.")],
-    episodes: Annotated[int, typer.Option(help="Episodes (DSRL's data sets hold >= 1000).")] = 1000,
+    episodes: Annotated[int | None, typer.Option(
+        help="Episodes kept (default: DSRL's count for experts, 1000 scripted).")] = None,
     out: Annotated[Path | None, typer.Option(
         help="Output HDF5 file (default: the cache's datasets/TASK.hdf5).")] = None,
-    seed: Annotated[int, typer.Option(help="PRNG seed (knobs, layouts, action noise).")] = 0,
+    seed: Annotated[int, typer.Option(help="PRNG seed (layouts, action noise, filter).")] = 0,
+    behaviour: Annotated[str, typer.Option(
+        help="'expert': roll out the task's committed PPO-Lagrangian snapshots and grid-filter "
+             "them as DSRL does; 'scripted': the scripted drivers.")] = "expert",
+    snapshots: Annotated[Path | None, typer.Option(
+        help="Expert snapshot file (default: the committed one of TASK).")] = None,
 ) -> None:
-    """Collects behaviour-policy episodes of a task into a DSRL-format HDF5 file."""
+    """Collects behaviour episodes of a task into a DSRL-format HDF5 file."""
     import envs
 
     if task not in envs.NAMES:
         _fail(f"unknown task {task!r}; valid names: {', '.join(envs.NAMES)}")
-    if episodes < 1:
+    if episodes is not None and episodes < 1:
         _fail(f"--episodes must be at least 1, got {episodes}")
 
     import jax
@@ -36,23 +42,43 @@ def collect_cmd(
 
     from safecdt_jax import paths
     from safecdt_jax.data.collect import check_writable, collect, write_collected
+    from safecdt_jax.experts.collect import (
+        BEHAVIOURS,
+        expert_dataset,
+        planned_episodes,
+        snapshot_path,
+        target_size,
+    )
 
     try:
+        if behaviour not in BEHAVIOURS:
+            raise ValueError(f"unknown --behaviour {behaviour!r}; choose one of "
+                             f"{', '.join(BEHAVIOURS)}")
+        if behaviour == "expert" and snapshots is None:
+            snapshot_path(task)
         path = check_writable(paths.dataset_path(task) if out is None else out)
     except ValueError as e:
         _fail(str(e))
     start = time.perf_counter()
-    with tqdm(total=episodes, desc=f"collect {task}", unit="ep") as bar:
-        data = collect(jax.random.PRNGKey(seed), task, episodes, progress=bar.update, seed=seed)
+    key = jax.random.PRNGKey(seed)
+    if behaviour == "scripted":
+        n = episodes or 1000
+        with tqdm(total=n, desc=f"collect {task}", unit="ep") as bar:
+            data = collect(key, task, n, progress=bar.update, seed=seed)
+    else:
+        total = planned_episodes(task, episodes) if snapshots is None else None
+        with tqdm(total=total, desc=f"roll out {task} experts", unit="ep") as bar:
+            data = expert_dataset(key, task, size=target_size(task, episodes),
+                                  snapshots=snapshots, progress=bar.update)
     collected = time.perf_counter()
     try:
         write_collected(path, data)
     except OSError as e:
         _fail(f"cannot write {path}: {e}")
     done = time.perf_counter()
-    typer.echo(f"wrote {episodes} episodes ({int(data.lengths.sum()):,} transitions) of {task} "
-               f"to {path} in {done - start:.1f} s (collect {collected - start:.1f} s incl. "
-               f"compile, write {done - collected:.1f} s)")
+    typer.echo(f"wrote {data.n_episodes} episodes ({int(data.lengths.sum()):,} transitions) of "
+               f"{task} to {path} in {done - start:.1f} s (collect {collected - start:.1f} s "
+               f"incl. compile, write {done - collected:.1f} s)")
 
 
 @app.command("data-summary")

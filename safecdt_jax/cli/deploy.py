@@ -88,7 +88,10 @@ def run(
     variant: Variants = "safe_cdt",
     preset: Annotated[str, typer.Option(help="CDT preset: tiny, cpu, osrl, paper.")] = "cpu",
     data_episodes: Annotated[int | None, typer.Option(
-        min=1, help="Source data set size (default: the collector's).")] = None,
+        min=1, help="Source data set size (default: DSRL's for experts, 1000 scripted).")] = None,
+    behaviour: Annotated[str, typer.Option(
+        help="Source data: 'expert' (committed PPO-Lagrangian snapshots, DSRL's grid filter) "
+             "or 'scripted' (scripted drivers).")] = "expert",
     steps: Annotated[int | None, typer.Option(
         min=1, help="Pretraining updates (default: the preset's).")] = None,
     horizon: Annotated[int | None, typer.Option(
@@ -98,18 +101,19 @@ def run(
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
 ) -> None:
     """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report."""
-    from safecdt_jax.data.collect import DEFAULT_EPISODES, ensure_dataset
     from safecdt_jax.deploy.job import parse_pair
+    from safecdt_jax.experts.collect import ensure_source_data, planned_episodes
     from safecdt_jax.pretrain.run import ensure_checkpoint
 
     start = time.perf_counter()
     try:
         source, target = parse_pair(pair)
         _check_runs(variant, budget, episodes, horizon)
-        n_data = data_episodes or DEFAULT_EPISODES
-        typer.echo(f"[1/3] source data: {source}, {n_data} episodes")
-        data = _with_bar(n_data, f"collect {source}",
-                         lambda bar: ensure_dataset(source, n_data, seed, progress=bar))
+        typer.echo(f"[1/3] source data: {source}, {behaviour} behaviour")
+        total = (data_episodes or 1000) if behaviour == "scripted" else planned_episodes(
+            source, data_episodes)
+        data = _with_bar(total, f"collect {source}", lambda bar: ensure_source_data(
+            source, behaviour, data_episodes, seed, progress=bar))
         typer.echo(f"      {data}")
         typer.echo(f"[2/3] pretrained CDT: preset {preset}")
         # The cache is run's own: a checkpoint of older data (e.g. recollected after a

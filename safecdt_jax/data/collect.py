@@ -92,24 +92,8 @@ def collect(key: jax.Array, task: str, episodes: int, chunk: int = DEFAULT_CHUNK
         raise ValueError(f"horizon must be >= 1, got {t}")
     k_knobs, k_eps = jax.random.split(key)
     knobs = sample_knobs(k_knobs, task, episodes)
-    keys = jax.random.split(k_eps, episodes)
-    rollout = _rollout_fn(task, t)
-    d = env.observation_size
-    obs = np.empty((episodes, t, d), np.float32)
-    nxt = np.empty((episodes, t, d), np.float32)
-    actions = np.empty((episodes, t, env.action_size), np.float32)
-    rewards = np.empty((episodes, t), np.float32)
-    costs = np.empty((episodes, t), np.float32)
-    chunk = max(1, min(chunk, episodes))
-    for start in range(0, episodes, chunk):
-        stop = min(start + chunk, episodes)
-        idx = np.minimum(np.arange(start, start + chunk), episodes - 1)  # pad with repeats
-        out = rollout(keys[idx], jax.tree.map(lambda v, i=idx: v[i], knobs))
-        o, last, a, r, c = (np.asarray(x)[: stop - start] for x in out)
-        obs[start:stop], nxt[start:stop, :-1], nxt[start:stop, -1] = o, o[:, 1:], last
-        actions[start:stop], rewards[start:stop], costs[start:stop] = a, r, c
-        if progress is not None:
-            progress(stop - start)
+    arrays = run_episodes(_rollout_fn(task, t), jax.random.split(k_eps, episodes), knobs,
+                          env.observation_size, env.action_size, chunk, progress)
     attrs = {
         "task": task,
         "env_params": env_params_attrs(task),
@@ -122,13 +106,50 @@ def collect(key: jax.Array, task: str, episodes: int, chunk: int = DEFAULT_CHUNK
     }
     if seed is not None:
         attrs["seed"] = int(seed)
-    n = episodes
-    return Dataset(
-        observations=obs, next_observations=nxt, actions=actions, rewards=rewards, costs=costs,
-        lengths=np.full(n, t, np.int32), terminals=np.zeros(n, bool), timeouts=np.ones(n, bool),
-        return_offset=np.zeros(n, np.float32), cost_offset=np.zeros(n, np.float32),
-        episode_info={k: np.asarray(v, np.float32) for k, v in knobs.items()},
-        attrs=Attrs(attrs))
+    return full_length_dataset(arrays, {k: np.asarray(v, np.float32) for k, v in knobs.items()},
+                               attrs)
+
+
+def run_episodes(rollout: Callable, keys: jax.Array, inputs, obs_dim: int, act_dim: int,
+                 chunk: int = DEFAULT_CHUNK, progress: Callable[[int], None] | None = None
+                 ) -> dict[str, np.ndarray]:
+    """Runs `rollout(keys [c], inputs {leaves [c, ...]})` (a jitted, vmapped whole-episode
+    program returning (obs [c, T, d], final obs [c, d], actions, rewards, costs)) over all
+    episodes, `chunk` at a time (the last chunk padded with repeats, so one compiled program
+    serves all), into numpy arrays: observations, next_observations [n, T, d], actions
+    [n, T, act_dim], rewards, costs [n, T]. `progress(k)` after each chunk of k episodes."""
+    episodes = keys.shape[0]
+    obs = nxt = actions = rewards = costs = None
+    chunk = max(1, min(chunk, episodes))
+    for start in range(0, episodes, chunk):
+        stop = min(start + chunk, episodes)
+        idx = np.minimum(np.arange(start, start + chunk), episodes - 1)  # pad with repeats
+        out = rollout(keys[idx], jax.tree.map(lambda v, i=idx: v[i], inputs))
+        o, last, a, r, c = (np.asarray(x)[: stop - start] for x in out)
+        if obs is None:
+            t = o.shape[1]
+            obs = np.empty((episodes, t, obs_dim), np.float32)
+            nxt = np.empty_like(obs)
+            actions = np.empty((episodes, t, act_dim), np.float32)
+            rewards = np.empty((episodes, t), np.float32)
+            costs = np.empty((episodes, t), np.float32)
+        obs[start:stop], nxt[start:stop, :-1], nxt[start:stop, -1] = o, o[:, 1:], last
+        actions[start:stop], rewards[start:stop], costs[start:stop] = a, r, c
+        if progress is not None:
+            progress(stop - start)
+    return dict(observations=obs, next_observations=nxt, actions=actions, rewards=rewards,
+                costs=costs)
+
+
+def full_length_dataset(arrays: dict[str, np.ndarray], episode_info: dict, attrs: dict
+                        ) -> Dataset:
+    """A `Dataset` of `run_episodes` arrays: every episode runs the whole horizon and ends in a
+    timeout (the tasks have no terminations)."""
+    n, t = arrays["rewards"].shape
+    return Dataset(**arrays, lengths=np.full(n, t, np.int32), terminals=np.zeros(n, bool),
+                   timeouts=np.ones(n, bool), return_offset=np.zeros(n, np.float32),
+                   cost_offset=np.zeros(n, np.float32), episode_info=episode_info,
+                   attrs=Attrs(attrs))
 
 
 def write_collected(path: str | os.PathLike, data: Dataset) -> Path:
@@ -220,6 +241,8 @@ __all__ = [
     "ensure_dataset",
     "env_params_attrs",
     "file_attrs",
+    "full_length_dataset",
     "is_current",
+    "run_episodes",
     "write_collected",
 ]

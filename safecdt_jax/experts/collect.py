@@ -1,0 +1,290 @@
+"""Source data from expert snapshots, as DSRL makes it: roll every snapshot out stochastically,
+then grid-filter the episodes in (cost, return) space to DSRL's count and cost cap.
+
+    data = expert_dataset(key, "CarGoal1")          # the committed snapshots of the task
+    write_collected(path, data)                     # DSRL-format HDF5, provenance in attrs
+
+DSRL kept every trajectory its experts met while training under an annealed cost limit; here the
+training episodes are not stored (12M transitions would not fit), so each kept snapshot (the
+actor after a training round, with its observation normaliser) is rolled out again with its own
+exploration noise, which is what the training saw at that point.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import envs
+from safecdt_jax.data.collect import (
+    DEFAULT_CHUNK,
+    env_params_attrs,
+    full_length_dataset,
+    run_episodes,
+)
+from safecdt_jax.data.dataset import Attrs, Dataset, select_episodes
+from safecdt_jax.experts.config import ExpertConfig
+from safecdt_jax.experts.export import load_snapshots
+from safecdt_jax.experts.ppo_lag import make_train
+
+SNAPSHOT_DIR = Path(__file__).parent / "snapshots"
+EXPERT_COLLECTOR_VERSION = 1
+
+
+class DsrlSize(NamedTuple):
+    """A DSRL source data set's size: episodes kept and the cost cap of its grid filter."""
+
+    episodes: int
+    max_cost: float
+
+
+# DSRL's source data sets (file names `{task}-{max cost}-{trajectories}.hdf5`).
+DSRL_SIZES = {
+    "CarGoal1": DsrlSize(1671, 120.0),
+    "CarCircle1": DsrlSize(1271, 250.0),
+    "PointCircle1": DsrlSize(1098, 200.0),
+    "PointGoal1": DsrlSize(2022, 100.0),
+}
+
+
+def snapshot_path(task: str) -> Path:
+    """The committed snapshot file of `task` (ValueError if the task has none)."""
+    path = SNAPSHOT_DIR / f"{task}.npz"
+    if not path.is_file():
+        have = sorted(p.stem for p in SNAPSHOT_DIR.glob("*.npz"))
+        raise ValueError(f"no expert snapshots for {task!r} (have: {', '.join(have) or 'none'})")
+    return path
+
+
+@functools.cache
+def _rollout_fn(cfg: ExpertConfig, horizon: int) -> Callable:
+    """jit(vmap(episode)): (keys [c], snapshots {leaves [c, ...]}) -> (obs, final obs, actions
+    clipped to [-1, 1], rewards, costs), every episode `horizon` steps of the snapshot's
+    stochastic policy."""
+    env, params = envs.make(cfg.task)
+    policy = make_train(cfg).policy
+
+    def episode(key: jax.Array, snapshot: dict):
+        k_reset, k_steps = jax.random.split(key)
+
+        def step(state, k):
+            action = jnp.clip(policy(snapshot, state.obs, k), -1.0, 1.0)
+            nxt = env.step(state, action, params)
+            return nxt, (state.obs, action, nxt.reward, nxt.cost)
+
+        final, (obs, actions, rewards, costs) = jax.lax.scan(
+            step, env.reset(k_reset, params), jax.random.split(k_steps, horizon))
+        return obs, final.obs, actions, rewards, costs
+
+    return jax.jit(jax.vmap(episode))
+
+
+def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int,
+                      horizon: int | None = None, chunk: int = DEFAULT_CHUNK,
+                      progress: Callable[[int], None] | None = None) -> Dataset:
+    """`per_snapshot` stochastic episodes of every snapshot in file `path`, as a `Dataset`.
+
+    episode_info: 'snapshot' (index in the file), 'run', 'round'. attrs: task, env params,
+    PHYSICS_VERSION, the expert config, the snapshot file's name and SHA-256, and per snapshot
+    its schedule, seed and round (`snapshots`). Episodes run `horizon` steps (default: the
+    episode length the experts trained on, the task's time limit unless shortened). ValueError when the file's physics version is not the current one.
+    """
+    snaps, meta = load_snapshots(path)
+    if meta["physics_version"] != envs.PHYSICS_VERSION:
+        raise ValueError(f"{os.fspath(path)} was trained under PHYSICS_VERSION "
+                         f"{meta['physics_version']}, the envs are at {envs.PHYSICS_VERSION}: "
+                         f"retrain the experts (safecdt-jax expert)")
+    if per_snapshot < 1:
+        raise ValueError(f"per_snapshot must be >= 1, got {per_snapshot}")
+    cfg = ExpertConfig.from_json(meta["expert"])
+    env = envs.make(cfg.task)[0]
+    t = cfg.horizon if horizon is None else int(horizon)
+    n_snap = len(meta["snapshots"])
+    which = np.repeat(np.arange(n_snap), per_snapshot)
+    inputs = jax.tree.map(lambda x: x[which], snaps)
+    keys = jax.random.split(key, which.size)
+    arrays = run_episodes(_rollout_fn(cfg, t), keys, inputs, env.observation_size,
+                          env.action_size, chunk, progress)
+    info = {"snapshot": which.astype(np.float32),
+            "run": np.asarray([meta["snapshots"][i]["run"] for i in which], np.float32),
+            "round": np.asarray([meta["snapshots"][i]["round"] for i in which], np.float32)}
+    attrs = {"task": cfg.task, "env_params": env_params_attrs(cfg.task),
+             "physics_version": envs.PHYSICS_VERSION, "behaviour": "expert",
+             "expert_collector_version": EXPERT_COLLECTOR_VERSION, "expert": meta["expert"],
+             "snapshot_file": Path(path).name,
+             "snapshot_sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+             "snapshots": meta["snapshots"], "per_snapshot": per_snapshot, "horizon": t}
+    return full_length_dataset(arrays, info, attrs)
+
+
+def grid_filter(rng: np.random.Generator, costs, returns, max_cost: float, cost_bins: int,
+                reward_bins: int, per_bin: int) -> np.ndarray:
+    """Sorted indices kept by DSRL's grid filter: episodes with cost <= `max_cost`, binned on a
+    `cost_bins` x `reward_bins` grid over their (cost, return) range, at most `per_bin` per
+    bin (a fuller bin keeps a random subset)."""
+    costs, returns = np.asarray(costs, np.float64), np.asarray(returns, np.float64)
+    ok = np.flatnonzero(costs <= max_cost)
+    if ok.size == 0:
+        return ok
+
+    def bins(x, n):
+        lo, hi = x.min(), x.max()
+        return np.zeros(x.shape, np.int64) if hi <= lo else np.clip(
+            ((x - lo) / (hi - lo) * n).astype(np.int64), 0, n - 1)
+
+    cell = bins(costs[ok], cost_bins) * reward_bins + bins(returns[ok], reward_bins)
+    kept = []
+    for c in np.unique(cell):
+        members = ok[cell == c]
+        if members.size > per_bin:
+            members = rng.choice(members, per_bin, replace=False)
+        kept.append(members)
+    return np.sort(np.concatenate(kept))
+
+
+def filter_to_size(rng: np.random.Generator, costs, returns, size: DsrlSize,
+                   cost_bins: int = 60, reward_bins: int = 50) -> tuple[np.ndarray, int]:
+    """(indices, per_bin): DSRL's grid filter (cbins 60, rbins 50) at the largest per-bin cap
+    that keeps at most `size.episodes` episodes at cost <= `size.max_cost` (all of them if
+    fewer qualify; a random subset of the cells' picks if even a cap of 1 keeps more)."""
+    lo, hi = 1, max(1, len(costs))
+    while lo < hi:  # largest cap whose kept count is <= the target
+        mid = (lo + hi + 1) // 2
+        n = grid_filter(np.random.default_rng(0), costs, returns, size.max_cost, cost_bins,
+                        reward_bins, mid).size
+        lo, hi = (mid, hi) if n <= size.episodes else (lo, mid - 1)
+    kept = grid_filter(rng, costs, returns, size.max_cost, cost_bins, reward_bins, lo)
+    if kept.size > size.episodes:  # even one per cell is too many: a random subset of them
+        kept = np.sort(rng.choice(kept, size.episodes, replace=False))
+    return kept, lo
+
+
+def _per_snapshot(path: Path, size: DsrlSize) -> int:
+    """Episodes per snapshot for twice the target count before filtering."""
+    n_snap = len(load_snapshots(path)[1]["snapshots"])
+    return max(1, -(-2 * size.episodes // n_snap))
+
+
+def target_size(task: str, episodes: int | None = None) -> DsrlSize:
+    """DSRL's size of `task`'s source data, with `episodes` instead of its count if given."""
+    size = DSRL_SIZES.get(task) or DsrlSize(1000, 120.0)
+    return size if episodes is None else size._replace(episodes=int(episodes))
+
+
+def planned_episodes(task: str, episodes: int | None = None) -> int:
+    """How many episodes `expert_dataset` rolls out (before filtering) for this target size."""
+    path = snapshot_path(task)
+    return _per_snapshot(path, target_size(task, episodes)) * len(
+        load_snapshots(path)[1]["snapshots"])
+
+
+def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
+                   size: DsrlSize | None = None, snapshots: str | os.PathLike | None = None,
+                   horizon: int | None = None,
+                   progress: Callable[[int], None] | None = None) -> Dataset:
+    """The source data of `task` from its expert snapshots (default: the committed file),
+    grid-filtered to DSRL's size (default `DSRL_SIZES[task]`).
+
+    `per_snapshot` episodes per snapshot (default: enough for twice the target count). attrs
+    add the filter's settings ('grid_filter': cbins, rbins, per-bin cap, max cost, episodes
+    before and after) to `rollout_snapshots`' provenance.
+    """
+    from safecdt_jax.data.windows import episode_costs, episode_returns
+
+    path = snapshot_path(task) if snapshots is None else Path(snapshots)
+    size = size or target_size(task)
+    per_snapshot = per_snapshot or _per_snapshot(path, size)
+    k_roll, k_filter = jax.random.split(key)
+    raw = rollout_snapshots(k_roll, path, per_snapshot, horizon=horizon, progress=progress)
+    costs, returns = episode_costs(raw), episode_returns(raw)
+    rng = np.random.default_rng(np.asarray(jax.random.bits(k_filter, (2,)), np.uint64))
+    kept, per_bin = filter_to_size(rng, costs, returns, size)
+    data = select_episodes(raw, kept)
+    attrs = dict(data.attrs) | {
+        "episodes": int(kept.size),
+        "grid_filter": {"cost_bins": 60, "reward_bins": 50, "per_bin": per_bin,
+                        "max_cost": size.max_cost, "target": size.episodes,
+                        "episodes_before": int(costs.size), "episodes_after": int(kept.size)}}
+    return dataclasses.replace(data, attrs=Attrs(attrs))
+
+
+def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int) -> bool:
+    """Whether `path` holds expert data of `task` from the committed snapshots (same SHA-256),
+    this collector and physics version, `seed`, and the filter's target size."""
+    from safecdt_jax.data.collect import file_attrs
+
+    attrs = file_attrs(path)
+    if attrs is None or attrs.get("behaviour") != "expert":
+        return False
+    sha = hashlib.sha256(snapshot_path(task).read_bytes()).hexdigest()
+    grid = json.loads(attrs.get("grid_filter", "{}"))
+    return (attrs.get("task") == task and attrs.get("snapshot_sha256") == sha
+            and attrs.get("expert_collector_version") == EXPERT_COLLECTOR_VERSION
+            and attrs.get("physics_version") == envs.PHYSICS_VERSION
+            and attrs.get("seed") == seed and grid.get("max_cost") == size.max_cost
+            and grid.get("target") == size.episodes)
+
+
+BEHAVIOURS = ("expert", "scripted")
+
+
+def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | None = None,
+                       seed: int = 0, path: str | os.PathLike | None = None,
+                       progress: Callable[[int], None] | None = None) -> Path:
+    """The path of a current source data set of `task` (default `paths.dataset_path(task)`),
+    collected there first unless the file is current.
+
+    behaviour 'expert' (default): the task's committed expert snapshots, grid-filtered to
+    DSRL's size (`episodes` overrides its count); 'scripted': the scripted drivers of
+    `safecdt_jax.data.behaviour` (`episodes` of them, default 1000). ValueError for an unknown
+    behaviour or task, or a task without snapshots.
+    """
+    from safecdt_jax import paths
+    from safecdt_jax.data.collect import (
+        DEFAULT_EPISODES,
+        check_writable,
+        ensure_dataset,
+        write_collected,
+    )
+
+    if behaviour not in BEHAVIOURS:
+        raise ValueError(f"unknown behaviour {behaviour!r}; choose one of {', '.join(BEHAVIOURS)}")
+    if behaviour == "scripted":
+        return ensure_dataset(task, episodes or DEFAULT_EPISODES, seed, path, progress)
+    snapshot_path(task)  # validates the task before touching the disk
+    size = target_size(task, episodes)
+    path = Path(paths.dataset_path(task) if path is None else path).expanduser()
+    if is_current(path, task, size, seed):
+        return path
+    path = check_writable(path)
+    data = expert_dataset(jax.random.PRNGKey(seed), task, size=size, progress=progress)
+    data = dataclasses.replace(data, attrs=Attrs(dict(data.attrs) | {"seed": int(seed)}))
+    return write_collected(path, data)
+
+
+__all__ = [
+    "BEHAVIOURS",
+    "DSRL_SIZES",
+    "EXPERT_COLLECTOR_VERSION",
+    "SNAPSHOT_DIR",
+    "DsrlSize",
+    "ensure_source_data",
+    "expert_dataset",
+    "filter_to_size",
+    "grid_filter",
+    "is_current",
+    "planned_episodes",
+    "rollout_snapshots",
+    "snapshot_path",
+    "target_size",
+]

@@ -1,0 +1,116 @@
+"""An expert run's products on disk: learning curves (JSON, PNG) and the snapshot file that
+the collector rolls out (`.npz`: stacked actor weights and normalisers, plus provenance)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+import envs
+from safecdt_jax.data.dataset import atomic_path, write_text_atomic
+from safecdt_jax.experts.config import ExpertConfig
+from safecdt_jax.experts.networks import ObsNorm
+from safecdt_jax.experts.run import ExpertRun
+
+SNAPSHOT_FORMAT = 1
+
+
+def write_curves(path: str | os.PathLike, run: ExpertRun) -> Path:
+    """Per-run learning curves as JSON (atomically): env steps per round and each curve."""
+    steps_per_round = run.cfg.num_envs * run.cfg.horizon
+    rounds = run.curves["return"].shape[1]
+    record = {"task": run.cfg.task, "expert": run.cfg.to_json(),
+              "env_steps": [steps_per_round * (i + 1) for i in range(rounds)],
+              "runs": [{"label": label, "schedule": s.as_array().tolist(), "seed": seed,
+                        **{k: v[i].tolist() for k, v in run.curves.items()}}
+                       for i, (label, s, seed) in enumerate(zip(run.labels, run.schedules,
+                                                                run.seeds, strict=True))]}
+    return write_text_atomic(path, json.dumps(record, indent=1))
+
+
+def plot_curves(path: str | os.PathLike, run: ExpertRun) -> Path:
+    """Return and cost against env steps, one line per run, each run's cost limit dashed."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    x = run.cfg.num_envs * run.cfg.horizon * (np.arange(run.curves["return"].shape[1]) + 1)
+    fig = Figure(figsize=(10, 4))
+    FigureCanvasAgg(fig)
+    ax_r, ax_c = fig.subplots(1, 2)
+    for i, label in enumerate(run.labels):
+        line, = ax_r.plot(x, run.curves["return"][i], label=label)
+        ax_c.plot(x, run.curves["cost"][i], color=line.get_color())
+        limit = run.curves["cost_limit"][i]
+        if limit.max() < 1e6:
+            ax_c.plot(x, limit, "--", color=line.get_color(), lw=1)
+    ax_r.set(xlabel="env steps", ylabel="episode return", title=f"{run.cfg.task} experts")
+    ax_c.set(xlabel="env steps", ylabel="episode cost (dashed: limit)")
+    ax_r.legend(fontsize=7)
+    fig.tight_layout()
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=100)
+    return Path(path)
+
+
+def select_rounds(rounds: int, keep: int) -> np.ndarray:
+    """`keep` round indices evenly spaced over 0..rounds-1, the last round always included."""
+    return np.unique(np.round(np.linspace(rounds - 1, 0, keep)[::-1]).astype(int)) \
+        if keep < rounds else np.arange(rounds)
+
+
+def write_snapshots(path: str | os.PathLike, run: ExpertRun, keep: int = 8) -> Path:
+    """Writes `keep` snapshots per run (evenly spaced rounds) as one `.npz` (atomically):
+    leaves stacked over snapshots, plus a JSON `meta` with the task, PHYSICS_VERSION, the expert
+    config, and per snapshot its run, cost schedule, seed, round and training-episode totals."""
+    rounds = run.curves["return"].shape[1]
+    pick = select_rounds(rounds, keep)
+    runs = np.repeat(np.arange(len(run.seeds)), pick.size)
+    rnds = np.tile(pick, len(run.seeds))
+    snaps = jax.tree.map(lambda x: np.asarray(x)[runs, rnds], run.snapshots)
+    meta = {"format": SNAPSHOT_FORMAT, "task": run.cfg.task,
+            "physics_version": envs.PHYSICS_VERSION, "expert": run.cfg.to_json(),
+            "snapshots": [{"run": int(i), "schedule": run.schedules[i].as_array().tolist(),
+                           "seed": run.seeds[i], "round": int(r),
+                           "train_return": float(run.curves["return"][i, r]),
+                           "train_cost": float(run.curves["cost"][i, r])}
+                          for i, r in zip(runs, rnds, strict=True)]}
+    leaves = jax.tree_util.tree_flatten_with_path(snaps)[0]
+    arrays = {jax.tree_util.keystr(p): np.asarray(v, np.float32) for p, v in leaves}
+    with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, meta=np.asarray(json.dumps(meta)), **arrays)
+    return Path(path)
+
+
+def load_snapshots(path: str | os.PathLike) -> tuple[dict[str, Any], dict]:
+    """(snapshots, meta) from `write_snapshots`' file: snapshots {'actor', 'norm': ObsNorm} with
+    leaves [n_snapshots, ...]. ValueError naming the file if it is not such a file."""
+    try:
+        with np.load(path) as z:
+            meta = json.loads(str(z["meta"]))
+            arrays = {k: z[k] for k in z.files if k != "meta"}
+    except (OSError, KeyError, ValueError) as e:
+        raise ValueError(f"{os.fspath(path)} is not an expert snapshot file: {e}") from None
+    if meta.get("format") != SNAPSHOT_FORMAT:
+        raise ValueError(f"{os.fspath(path)}: snapshot format {meta.get('format')!r}, this "
+                         f"code reads {SNAPSHOT_FORMAT}")
+    cfg = ExpertConfig.from_json(meta["expert"])
+    obs_dim = envs.make(cfg.task)[0].observation_size
+    template = jax.eval_shape(lambda: {"actor": _actor_template(cfg, obs_dim),
+                                       "norm": ObsNorm.create(obs_dim)})
+    paths_ = jax.tree_util.tree_flatten_with_path(template)
+    leaves = [arrays[jax.tree_util.keystr(p)] for p, _ in paths_[0]]
+    return jax.tree.unflatten(paths_[1], leaves), meta
+
+
+def _actor_template(cfg: ExpertConfig, obs_dim: int):
+    from safecdt_jax.experts.networks import init_networks
+
+    return init_networks(jax.random.PRNGKey(0), obs_dim, 2, cfg.hidden, cfg.init_std)["actor"]
+
+
+__all__ = ["load_snapshots", "plot_curves", "select_rounds", "write_curves", "write_snapshots"]

@@ -1,0 +1,230 @@
+"""PPO-Lagrangian experts: GAE, the PID step, schedules, the normaliser's floor, determinism,
+vmap == loop, chunked == whole, and the grid filter of the expert collector."""
+
+import functools
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from safecdt_jax.experts import CostSchedule, ExpertConfig, expert_preset, make_train
+from safecdt_jax.experts.collect import DsrlSize, filter_to_size, grid_filter
+from safecdt_jax.experts.config import NO_LIMIT
+from safecdt_jax.experts.networks import ObsNorm
+from safecdt_jax.experts.ppo_lag import PID, cost_limit, gae, pid_step
+
+
+def test_gae_matches_hand_computation():
+    r = jnp.array([1.0, 0.0, 2.0])
+    v = jnp.array([0.5, 1.0, 1.5])
+    gamma, lam, last = 0.9, 0.8, 2.0
+    d2 = 2.0 + 0.9 * 2.0 - 1.5                 # 2.3
+    d1 = 0.0 + 0.9 * 1.5 - 1.0                 # 0.35
+    d0 = 1.0 + 0.9 * 1.0 - 0.5                 # 1.4
+    a2 = d2
+    a1 = d1 + 0.72 * a2
+    a0 = d0 + 0.72 * a1
+    adv, ret = gae(r, v, jnp.float32(last), gamma, lam)
+    np.testing.assert_allclose(adv, [a0, a1, a2], rtol=1e-6)
+    np.testing.assert_allclose(ret, np.array([a0, a1, a2]) + np.asarray(v), rtol=1e-6)
+    # batched over envs: each column on its own
+    adv2, _ = gae(jnp.stack([r, 2 * r], 1), jnp.stack([v, v], 1), jnp.array([last, last]),
+                  gamma, lam)
+    np.testing.assert_allclose(adv2[:, 0], adv, rtol=1e-6)
+
+
+def test_pid_step_by_hand():
+    pid = PID(lam=jnp.float32(0.3), integral=jnp.float32(4.0), cost_ema=jnp.float32(20.0))
+    out = pid_step(pid, jnp.float32(40.0), jnp.float32(25.0), kp=0.05, ki=0.005, kd=0.1, ema=0.9)
+    # e = 15; I = 19; s = 0.9 * 20 + 0.1 * 40 = 22; D = 2; lambda = 0.75 + 0.095 + 0.2
+    np.testing.assert_allclose([out.integral, out.cost_ema, out.lam], [19.0, 22.0, 1.045],
+                               rtol=1e-6)
+    below = pid_step(PID(*(jnp.float32(0.0),) * 3), jnp.float32(0.0), jnp.float32(25.0),
+                     0.05, 0.005, 0.1, 0.9)
+    assert float(below.lam) == 0.0 and float(below.integral) == 0.0  # never negative
+    free = pid_step(pid, jnp.float32(90.0), jnp.float32(NO_LIMIT), 0.05, 0.005, 0.1, 0.9)
+    assert float(free.lam) == 0.0  # an unconstrained run never pays for cost
+
+
+def test_anneal_schedule_ends_and_midpoint():
+    s = jnp.asarray(CostSchedule(80, 5, 0.2, 0.8).as_array())
+    values = [float(cost_limit(s, jnp.float32(p))) for p in (0.0, 0.2, 0.5, 0.8, 1.0)]
+    np.testing.assert_allclose(values, [80, 80, 42.5, 5, 5], rtol=1e-6)
+    const = jnp.asarray(CostSchedule.parse("25").as_array())
+    assert float(cost_limit(const, jnp.float32(0.7))) == 25.0
+    step = jnp.asarray(CostSchedule(10, 40, 0.5, 0.5).as_array())
+    assert [float(cost_limit(step, jnp.float32(p))) for p in (0.49, 0.5)] == [10.0, 40.0]
+
+
+@pytest.mark.parametrize("text,expected", [
+    ("25", (25, 25, 0, 1)), ("80:5", (80, 5, 0, 1)), ("80:5:0.2:0.8", (80, 5, 0.2, 0.8)),
+    ("none", (NO_LIMIT, NO_LIMIT, 0, 1)),
+])
+def test_cost_limit_parsing(text, expected):
+    np.testing.assert_allclose(CostSchedule.parse(text).as_array(), expected, rtol=1e-6)
+
+
+@pytest.mark.parametrize("text", ["abc", "1:2:3", "-5", "5:1:0.9:0.1"])
+def test_bad_cost_limit_is_a_clear_error(text):
+    with pytest.raises(ValueError, match=r"cost limit|CostSchedule"):
+        CostSchedule.parse(text)
+
+
+@pytest.mark.parametrize("field,value", [
+    ("num_envs", 0), ("rollout_len", 7), ("gamma", 1.5), ("lr", -1.0), ("minibatches", 3),
+    ("hidden", (0,)), ("task", "Ant"),
+])
+def test_bad_config_value_names_its_field(field, value):
+    with pytest.raises(ValueError, match=field if field != "task" else "unknown task 'Ant'"):
+        expert_preset("tiny", **{field: value})
+
+
+def test_normaliser_floor_keeps_constant_channels_silent():
+    norm = ObsNorm.create(3)
+    rng = np.random.default_rng(0)
+    batch = np.stack([rng.normal(2.0, 0.5, 1000), np.full(1000, 9.81),
+                      rng.normal(0.0, 1e-2, 1000)], 1).astype(np.float32)
+    norm = norm.update(jnp.asarray(batch[:400])).update(jnp.asarray(batch[400:]))
+    np.testing.assert_allclose(norm.mean, batch.mean(0), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(norm.var, batch.var(0), rtol=1e-3, atol=1e-8)
+    # Another simulator rocks the constant channel by 8 m/s^2: it still reads 0, not +-10.
+    moved = jnp.array([2.5, 9.81 + 8.0, 0.01])
+    z = norm.apply(moved, var_floor=1e-6, clip=10.0)
+    assert float(z[1]) == 0.0
+    np.testing.assert_allclose(z[0], (2.5 - norm.mean[0]) / np.sqrt(norm.var[0]), rtol=1e-5)
+    assert 0.5 < float(z[2]) < 1.5  # a small but live channel is still standardised
+
+
+TINY = expert_preset("tiny", task="PointCircle1")
+SCHED = jnp.asarray(CostSchedule(5, 5).as_array())
+
+
+@functools.cache
+def _train():
+    return make_train(TINY)
+
+
+@functools.cache
+def _single(seed: int):
+    return jax.jit(_train())(jax.random.PRNGKey(seed), SCHED)
+
+
+def test_tiny_training_runs_and_reports_each_round():
+    _, out = _single(0)
+    assert out["return"].shape == (TINY.rounds,) and out["snapshot"]["norm"].count.shape == (2,)
+    assert np.all(np.isfinite(out["return"])) and np.all(out["cost"] >= 0)
+    assert np.all(out["cost_limit"] == 5.0) and np.all(out["std"] >= TINY.min_std)
+    # the normaliser has seen every observation of the run: envs x steps per round
+    np.testing.assert_array_equal(out["snapshot"]["norm"].count,
+                                  [TINY.num_envs * TINY.horizon * (i + 1) for i in range(2)])
+
+
+def test_same_key_same_bits():
+    a = _single(0)[1]
+    b = jax.jit(make_train(TINY))(jax.random.PRNGKey(0), SCHED)[1]
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_vmap_over_seeds_equals_single_runs():
+    keys = jnp.stack([jax.random.PRNGKey(0), jax.random.PRNGKey(1)])
+    both = jax.jit(jax.vmap(_train()))(keys, jnp.stack([SCHED, SCHED]))[1]
+    for i in range(2):
+        one = _single(i)[1]
+        for x, y in zip(jax.tree.leaves(one), jax.tree.leaves(both), strict=True):
+            # A whole round (rollout, two PPO updates, PID, normaliser) agrees to float
+            # rounding. Later rounds drift apart: the batched matmuls sum in another order,
+            # and contact-rich physics amplifies it (0.5% of the return by round 1).
+            np.testing.assert_allclose(x[0], y[i, 0], rtol=2e-4, atol=1e-5)
+    assert not np.array_equal(both["return"][0], both["return"][1])
+
+
+def test_interrupted_run_resumes_with_the_same_bits(tmp_path):
+    from safecdt_jax.experts.run import train_experts
+
+    scheds, seeds = [CostSchedule(5, 5), CostSchedule.parse("none")], [0]
+    whole = train_experts(TINY, scheds, seeds, out=tmp_path / "a", chunk_rounds=1)
+
+    def stop_after_first(done, last):
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        train_experts(TINY, scheds, seeds, out=tmp_path / "b", chunk_rounds=1,
+                      progress=stop_after_first)
+    with pytest.raises(ValueError, match="resume"):
+        train_experts(TINY, scheds, seeds, out=tmp_path / "b", chunk_rounds=1)
+    with pytest.raises(ValueError, match="cannot resume"):
+        train_experts(TINY, scheds[:1], seeds, out=tmp_path / "b", resume=True)
+    resumed = train_experts(TINY, scheds, seeds, out=tmp_path / "b", chunk_rounds=1,
+                            resume=True)
+    for k in whole.curves:
+        np.testing.assert_array_equal(whole.curves[k], resumed.curves[k])
+    for x, y in zip(jax.tree.leaves(whole.snapshots), jax.tree.leaves(resumed.snapshots),
+                    strict=True):
+        np.testing.assert_array_equal(x, y)
+    assert whole.curves["return"].shape == (2, TINY.rounds)
+    assert np.all(whole.curves["lambda"][1] == 0.0)  # the unconstrained run
+
+
+def test_config_round_trips_json():
+    cfg = ExpertConfig(task="CarCircle1", hidden=(32, 16), steps=1000, num_envs=4,
+                       rollout_len=50, minibatches=4)
+    assert ExpertConfig.from_json(cfg.to_json()) == cfg
+
+
+def test_grid_filter_caps_bins_and_drops_costly_episodes():
+    # 4 cost bins x 2 return bins over the kept range [0, 40] x [0, 10].
+    costs = np.array([0, 1, 2, 3, 4, 15, 16, 35, 40, 200], float)
+    returns = np.array([0, 0, 0, 0, 10, 1, 1, 9, 10, 50], float)
+    rng = np.random.default_rng(0)
+    kept = grid_filter(rng, costs, returns, max_cost=50, cost_bins=4, reward_bins=2, per_bin=2)
+    assert 9 not in kept                                    # above the cost cap
+    assert np.sum(kept < 4) == 2                            # the crowded cell: capped at 2
+    assert {4, 5, 6, 7, 8} <= set(kept.tolist())            # the other cells: all kept
+    assert kept.size == 7 and np.all(np.diff(kept) > 0)
+    idx, per_bin = filter_to_size(rng, costs, returns, DsrlSize(6, 50.0), cost_bins=4,
+                                  reward_bins=2)
+    assert per_bin == 1 and idx.size == 4  # cap 2 keeps 7 > 6: one per occupied cell
+
+
+def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
+    from typer.testing import CliRunner
+
+    from safecdt_jax.cli import app
+    from safecdt_jax.data.dsrl import load_dataset
+
+    snaps = tmp_path / "snaps.npz"
+    res = CliRunner().invoke(app, [
+        "expert", "--task", "PointCircle1", "--preset", "tiny", "--steps", "320",
+        "--num-envs", "8", "--minibatches", "2", "--cost-limit", "5,none", "--out",
+        str(tmp_path / "run"), "--snapshots", str(snaps), "--keep", "2"])
+    assert res.exit_code == 0, res.output
+    assert "limit 5, seed 0" in res.output and (tmp_path / "run" / "curves.png").exists()
+    out = tmp_path / "data.hdf5"
+    res = CliRunner().invoke(app, ["collect", "--task", "PointCircle1", "--snapshots",
+                                   str(snaps), "--episodes", "6", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    data = load_dataset(out)
+    assert 1 <= data.n_episodes <= 6 and data.horizon == 20
+    assert data.attrs["behaviour"] == "expert" and data.attrs["task"] == "PointCircle1"
+    assert json.loads(data.attrs["grid_filter"])["target"] == 6  # nested attrs: JSON strings
+    snapshots = json.loads(data.attrs["snapshots"])
+    assert len(snapshots) == 4  # 2 runs x 2 kept rounds, with provenance
+    assert {s["seed"] for s in snapshots} == {0} and snapshots[0]["schedule"][0] == 5.0
+    assert set(np.unique(data.episode_info["snapshot"])) <= {0.0, 1.0, 2.0, 3.0}
+
+
+@pytest.mark.parametrize("args,message", [
+    (["expert", "--task", "Ant"], "error: ExpertConfig.task: unknown task 'Ant'"),
+    (["expert", "--task", "CarGoal1", "--cost-limit", "x"], "error: bad cost limit 'x'"),
+    (["collect", "--task", "CarGoal1", "--behaviour", "magic"], "error: unknown --behaviour"),
+])
+def test_expert_cli_bad_input_is_one_line(args, message):
+    from typer.testing import CliRunner
+
+    from safecdt_jax.cli import app
+
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 2 and message in res.output and "Traceback" not in res.output
