@@ -97,7 +97,8 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
     episode_info: 'snapshot' (index in the file), 'run', 'round'. attrs: task, env params,
     PHYSICS_VERSION, the expert config, the snapshot file's name and SHA-256, and per snapshot
     its schedule, seed and round (`snapshots`). Episodes run `horizon` steps (default: the
-    episode length the experts trained on, the task's time limit unless shortened). ValueError when the file's physics version is not the current one.
+    episode length the experts trained on, the task's time limit unless shortened).
+    ValueError when the file's physics version is not the current one.
     """
     snaps, meta = load_snapshots(path)
     if meta["physics_version"] != envs.PHYSICS_VERSION:
