@@ -103,7 +103,7 @@ def make_train(cfg: ExpertConfig):
     envs, raw units), 'cost_limit', 'lambda' (at the round's end), 'std' (mean action std),
     'snapshot' ({'actor', 'norm'}: the actor after the round and the normaliser it reads with).
     """
-    env, params = envs.make(cfg.task)
+    env, env_params = envs.make(cfg.task)
     obs_dim, act_dim = env.observation_size, env.action_size
     horizon, n_envs, length = cfg.horizon, cfg.num_envs, cfg.rollout_len
     total_updates = cfg.rounds * cfg.updates_per_round
@@ -130,7 +130,7 @@ def make_train(cfg: ExpertConfig):
             mean, std = action_dist(params["actor"], z, hidden, cfg.min_std)
             action = mean + std * jax.random.normal(k, mean.shape)
             nxt = jax.vmap(env.step, in_axes=(0, 0, None))(states, jnp.clip(action, -1, 1),
-                                                            params_env)
+                                                            env_params)
             out = dict(raw_obs=states.obs, obs=z, action=action,
                        logp=gaussian_log_prob(action, mean, std), reward=nxt.reward,
                        cost=nxt.cost, v_r=value(params["reward_critic"], z, hidden),
@@ -139,7 +139,6 @@ def make_train(cfg: ExpertConfig):
 
         return jax.lax.scan(step, states, jax.random.split(key, length))
 
-    params_env = params
 
     def loss_fn(net, batch):
         mean, std = action_dist(net["actor"], batch["obs"], hidden, cfg.min_std)
@@ -204,7 +203,7 @@ def make_train(cfg: ExpertConfig):
         key = jax.random.fold_in(runner.key, runner.round)
         k_reset, k_upd = jax.random.split(key)
         states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, n_envs),
-                                                         params_env)
+                                                         env_params)
         inner = runner._replace(key=k_upd)
         steps = (jnp.arange(cfg.updates_per_round), jnp.broadcast_to(
             schedule, (cfg.updates_per_round, *schedule.shape)))
