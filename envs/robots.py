@@ -113,6 +113,13 @@ class Robot:
         """Physics timestep in seconds (an env step is N_SUBSTEPS of them)."""
         return float(self.mj_model.opt.timestep)
 
+    def executed_action(self, action: jax.Array) -> jax.Array:
+        """The action with the same effect as `action` ([2] in [-1, 1]) that lies inside the
+        actuators' unsaturated range, where one can be given state-free: what a data set
+        should record, so that an imitator's mean action executes the behaviour's mean
+        command. The base robot's saturation is state-dependent: `action` as it is."""
+        return action
+
     def init_data(self, model: mjx.Model, xy: jax.Array, yaw: jax.Array) -> mjx.Data:
         """MJX data at rest at position `xy` (m) and heading `yaw` (rad), forward-computed."""
         data = mjx.make_data(model)
@@ -223,11 +230,15 @@ class CarRobot(Robot):
         fw = rot @ forces.sum(axis=0)
         return jnp.array([fw[0], fw[1], 0.0, 0.0, 0.0, tz])
 
+    def executed_action(self, action: jax.Array) -> jax.Array:
+        """clip(a, +-0.02): the wheel torque command `physics` applies (before the gear scale)."""
+        return jnp.clip(action, -self.torque_limit, self.torque_limit)
+
     def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
                 task: dict) -> tuple[mjx.Data, dict]:
         """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale."""
         m = _scaled_model(model, params)
-        torque = params.gear_scale * jnp.clip(action, -self.torque_limit, self.torque_limit)
+        torque = params.gear_scale * self.executed_action(action)
         loads = jnp.asarray(self._loads(), jnp.float32)
         com = jnp.asarray(self.mj_model.body_ipos[1][:2], jnp.float32)
 

@@ -228,3 +228,18 @@ def test_expert_cli_bad_input_is_one_line(args, message):
 
     res = CliRunner().invoke(app, args)
     assert res.exit_code == 2 and message in res.output and "Traceback" not in res.output
+
+
+def test_recorded_car_action_executes_as_the_sampled_one():
+    import envs
+
+    env, params = envs.make("CarCircle1")
+    state = env.reset(jax.random.PRNGKey(3), params)
+    sampled = jnp.array([0.7, -0.004])
+    executed = env.robot.executed_action(sampled)
+    np.testing.assert_allclose(executed, [0.02, -0.004], rtol=1e-6)
+    step = jax.jit(env.step)
+    a, b = step(state, sampled, params), step(state, executed, params)
+    np.testing.assert_array_equal(a.obs, b.obs)  # the same torque, the same next state
+    point = envs.make("PointCircle1")[0].robot
+    np.testing.assert_array_equal(point.executed_action(sampled), sampled)  # state-dependent

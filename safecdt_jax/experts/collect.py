@@ -38,7 +38,7 @@ from safecdt_jax.experts.export import load_snapshots
 from safecdt_jax.experts.ppo_lag import make_train
 
 SNAPSHOT_DIR = Path(__file__).parent / "snapshots"
-EXPERT_COLLECTOR_VERSION = 1
+EXPERT_COLLECTOR_VERSION = 2  # 2: actions recorded as executed (the Car's clipped torques)
 
 
 class DsrlSize(NamedTuple):
@@ -69,8 +69,8 @@ def snapshot_path(task: str) -> Path:
 @functools.cache
 def _rollout_fn(cfg: ExpertConfig, horizon: int) -> Callable:
     """jit(vmap(episode)): (keys [c], snapshots {leaves [c, ...]}) -> (obs, final obs, actions
-    clipped to [-1, 1], rewards, costs), every episode `horizon` steps of the snapshot's
-    stochastic policy."""
+    as executed (`Robot.executed_action`: the Car's torques clipped to +-0.02), rewards, costs),
+    every episode `horizon` steps of the snapshot's stochastic policy."""
     env, params = envs.make(cfg.task)
     policy = make_train(cfg).policy
 
@@ -78,7 +78,10 @@ def _rollout_fn(cfg: ExpertConfig, horizon: int) -> Callable:
         k_reset, k_steps = jax.random.split(key)
 
         def step(state, k):
-            action = jnp.clip(policy(snapshot, state.obs, k), -1.0, 1.0)
+            # Recorded as executed: a Gaussian expert's sampled Car torques saturate (|a| > 0.02)
+            # almost always, so its *mean* command lives in the average of the clipped samples;
+            # an imitator's deterministic mean action reproduces it only from clipped targets.
+            action = env.robot.executed_action(jnp.clip(policy(snapshot, state.obs, k), -1, 1))
             nxt = env.step(state, action, params)
             return nxt, (state.obs, action, nxt.reward, nxt.cost)
 
