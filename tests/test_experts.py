@@ -210,6 +210,7 @@ def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
     assert 1 <= data.n_episodes <= 6 and data.horizon == 20
     assert data.attrs["behaviour"] == "expert" and data.attrs["task"] == "PointCircle1"
     assert json.loads(data.attrs["grid_filter"])["target"] == 6  # nested attrs: JSON strings
+    assert data.attrs["seed"] == 0  # so that `run` reuses a file `collect` wrote
     snapshots = json.loads(data.attrs["snapshots"])
     assert len(snapshots) == 4  # 2 runs x 2 kept rounds, with provenance
     assert {s["seed"] for s in snapshots} == {0} and snapshots[0]["schedule"][0] == 5.0

@@ -69,7 +69,7 @@ def collect_cmd(
         total = planned_episodes(task, episodes) if snapshots is None else None
         with tqdm(total=total, desc=f"roll out {task} experts", unit="ep") as bar:
             data = expert_dataset(key, task, size=target_size(task, episodes),
-                                  snapshots=snapshots, progress=bar.update)
+                                  snapshots=snapshots, progress=bar.update, seed=seed)
     collected = time.perf_counter()
     try:
         write_collected(path, data)

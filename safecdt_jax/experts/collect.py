@@ -194,14 +194,15 @@ def planned_episodes(task: str, episodes: int | None = None) -> int:
 
 def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
                    size: DsrlSize | None = None, snapshots: str | os.PathLike | None = None,
-                   horizon: int | None = None,
-                   progress: Callable[[int], None] | None = None) -> Dataset:
+                   horizon: int | None = None, progress: Callable[[int], None] | None = None,
+                   seed: int | None = None) -> Dataset:
     """The source data of `task` from its expert snapshots (default: the committed file),
     grid-filtered to DSRL's size (default `DSRL_SIZES[task]`).
 
     `per_snapshot` episodes per snapshot (default: enough for twice the target count). attrs
     add the filter's settings ('grid_filter': cbins, rbins, per-bin cap, max cost, episodes
-    before and after) to `rollout_snapshots`' provenance.
+    before and after) to `rollout_snapshots`' provenance, and `seed` (the seed of `key`) if
+    given, which `ensure_source_data` checks.
     """
     from safecdt_jax.data.windows import episode_costs, episode_returns
 
@@ -219,6 +220,8 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
         "grid_filter": {"cost_bins": 60, "reward_bins": 50, "per_bin": per_bin,
                         "max_cost": size.max_cost, "target": size.episodes,
                         "episodes_before": int(costs.size), "episodes_after": int(kept.size)}}
+    if seed is not None:
+        attrs["seed"] = int(seed)
     return dataclasses.replace(data, attrs=Attrs(attrs))
 
 
@@ -271,8 +274,8 @@ def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | Non
     if is_current(path, task, size, seed):
         return path
     path = check_writable(path)
-    data = expert_dataset(jax.random.PRNGKey(seed), task, size=size, progress=progress)
-    data = dataclasses.replace(data, attrs=Attrs(dict(data.attrs) | {"seed": int(seed)}))
+    data = expert_dataset(jax.random.PRNGKey(seed), task, size=size, progress=progress,
+                          seed=seed)
     return write_collected(path, data)
 
 
