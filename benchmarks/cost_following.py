@@ -54,7 +54,12 @@ def run_one(task: str, seed: int, episodes: int) -> dict:
                      "mean_costs": costs, "mean_returns": [r["mean_return"] for r in at],
                      "spearman": rho, "below_median_at_20": bool(below),
                      "passes": bool(rho is not None and rho >= 0.8 and below)})
+    from safecdt_jax.data.collect import file_attrs
+
+    attrs = file_attrs(data) or {}
     return {"task": task, "seed": seed, "data_median_cost": median, "reference_return": r_ref,
+            "data": {k: attrs.get(k) for k in ("behaviour", "expert_collector_version",
+                                               "snapshot_sha256", "seed")},
             "episodes": episodes, "rows": rows, "seconds": time.perf_counter() - start}
 
 
@@ -90,7 +95,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/cost_following.json"))
     args = ap.parse_args()
     old = json.loads(args.out.read_text()) if args.out.exists() else {"results": []}
-    results = [r for r in old["results"] if r["episodes"] == args.episodes]
+    from safecdt_jax.experts.collect import EXPERT_COLLECTOR_VERSION
+
+    # Cells of other data (an older collector) are measured again.
+    results = [r for r in old["results"] if r["episodes"] == args.episodes and r.get(
+        "data", {}).get("expert_collector_version") == EXPERT_COLLECTOR_VERSION]
     done = {(r["task"], r["seed"]) for r in results}
     for task in args.tasks.split(","):
         for seed in (int(s) for s in args.seeds.split(",")):
