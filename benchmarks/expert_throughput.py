@@ -38,24 +38,14 @@ def _programs(task: str, n_envs: int):
 
     train_round = jax.jit(lambda r: train.run_rounds(r, sched, 1)[1]["return"])
 
-    @jax.jit
-    def sync(key):
-        states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, n_envs), params)
-
-        def step(states, k):
-            a = train.policy(snapshot, states.obs, k)
-            states = jax.vmap(env.step, in_axes=(0, 0, None))(states, a, params)
-            return states, states.reward
-
-        return jax.lax.scan(step, states, jax.random.split(key, horizon))[1].sum()
-
-    @jax.jit
-    def auto(key):
+    def rollout(key, auto_reset: bool):
         first = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, n_envs), params)
 
         def step(states, k):
             a = train.policy(snapshot, states.obs, k)
             nxt = jax.vmap(env.step, in_axes=(0, 0, None))(states, a, params)
+            if not auto_reset:  # one episode: nothing ends before the last step
+                return nxt, nxt.reward
             done = nxt.done > 0
 
             def pick(x, y):
@@ -64,6 +54,9 @@ def _programs(task: str, n_envs: int):
             return jax.tree.map(pick, first, nxt), nxt.reward
 
         return jax.lax.scan(step, first, jax.random.split(key, horizon))[1].sum()
+
+    sync = jax.jit(lambda k: rollout(k, False))
+    auto = jax.jit(lambda k: rollout(k, True))
 
     return {"train": lambda: train_round(runner), "rollout, sync reset":
             lambda: sync(jax.random.PRNGKey(1)), "rollout, auto-reset":
