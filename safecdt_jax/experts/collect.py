@@ -33,6 +33,8 @@ from safecdt_jax.data.collect import (
     run_episodes,
 )
 from safecdt_jax.data.dataset import Attrs, Dataset, select_episodes
+from safecdt_jax.data.relabel import RelabelConfig
+from safecdt_jax.data.relabel import grid_filter as relabel_grid_filter
 from safecdt_jax.experts.config import ExpertConfig
 from safecdt_jax.experts.export import load_snapshots
 from safecdt_jax.experts.ppo_lag import make_train
@@ -55,6 +57,11 @@ DSRL_SIZES = {
     "PointCircle1": DsrlSize(1098, 200.0),
     "PointGoal1": DsrlSize(2022, 100.0),
 }
+
+
+def snapshot_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a snapshot file (hex): the data's provenance, and what a cache check compares."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 def snapshot_path(task: str) -> Path:
@@ -126,7 +133,7 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
              "physics_version": envs.PHYSICS_VERSION, "behaviour": "expert",
              "expert_collector_version": EXPERT_COLLECTOR_VERSION, "expert": meta["expert"],
              "snapshot_file": Path(path).name,
-             "snapshot_sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+             "snapshot_sha256": snapshot_sha256(path),
              "snapshots": meta["snapshots"], "per_snapshot": per_snapshot, "horizon": t}
     return full_length_dataset(arrays, info, attrs)
 
@@ -140,20 +147,10 @@ def grid_filter(rng: np.random.Generator, costs, returns, max_cost: float, cost_
     ok = np.flatnonzero(costs <= max_cost)
     if ok.size == 0:
         return ok
-
-    def bins(x, n):
-        lo, hi = x.min(), x.max()
-        return np.zeros(x.shape, np.int64) if hi <= lo else np.clip(
-            ((x - lo) / (hi - lo) * n).astype(np.int64), 0, n - 1)
-
-    cell = bins(costs[ok], cost_bins) * reward_bins + bins(returns[ok], reward_bins)
-    kept = []
-    for c in np.unique(cell):
-        members = ok[cell == c]
-        if members.size > per_bin:
-            members = rng.choice(members, per_bin, replace=False)
-        kept.append(members)
-    return np.sort(np.concatenate(kept))
+    # OSRL's outlier grid over the capped episodes, with no minimum per cell.
+    grid = RelabelConfig(cost_bins=cost_bins, reward_bins=reward_bins, max_per_bin=per_bin,
+                         min_per_bin=1)
+    return ok[relabel_grid_filter(rng, costs[ok], returns[ok], grid)]
 
 
 def filter_to_size(rng: np.random.Generator, costs, returns, size: DsrlSize,
@@ -173,9 +170,8 @@ def filter_to_size(rng: np.random.Generator, costs, returns, size: DsrlSize,
     return kept, lo
 
 
-def _per_snapshot(path: Path, size: DsrlSize) -> int:
-    """Episodes per snapshot for twice the target count before filtering."""
-    n_snap = len(load_snapshots(path)[1]["snapshots"])
+def _per_snapshot(n_snap: int, size: DsrlSize) -> int:
+    """Episodes per snapshot (of `n_snap`) for twice the target count before filtering."""
     return max(1, -(-2 * size.episodes // n_snap))
 
 
@@ -187,9 +183,8 @@ def target_size(task: str, episodes: int | None = None) -> DsrlSize:
 
 def planned_episodes(task: str, episodes: int | None = None) -> int:
     """How many episodes `expert_dataset` rolls out (before filtering) for this target size."""
-    path = snapshot_path(task)
-    return _per_snapshot(path, target_size(task, episodes)) * len(
-        load_snapshots(path)[1]["snapshots"])
+    n_snap = len(load_snapshots(snapshot_path(task))[1]["snapshots"])
+    return _per_snapshot(n_snap, target_size(task, episodes)) * n_snap
 
 
 def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
@@ -208,7 +203,8 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
 
     path = snapshot_path(task) if snapshots is None else Path(snapshots)
     size = size or target_size(task)
-    per_snapshot = per_snapshot or _per_snapshot(path, size)
+    per_snapshot = per_snapshot or _per_snapshot(
+        len(load_snapshots(path)[1]["snapshots"]), size)
     k_roll, k_filter = jax.random.split(key)
     raw = rollout_snapshots(k_roll, path, per_snapshot, horizon=horizon, progress=progress)
     costs, returns = episode_costs(raw), episode_returns(raw)
@@ -233,7 +229,7 @@ def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int) ->
     attrs = file_attrs(path)
     if attrs is None or attrs.get("behaviour") != "expert":
         return False
-    sha = hashlib.sha256(snapshot_path(task).read_bytes()).hexdigest()
+    sha = snapshot_sha256(snapshot_path(task))
     grid = json.loads(attrs.get("grid_filter", "{}"))
     return (attrs.get("task") == task and attrs.get("snapshot_sha256") == sha
             and attrs.get("expert_collector_version") == EXPERT_COLLECTOR_VERSION

@@ -110,11 +110,15 @@ def make_train(cfg: ExpertConfig):
     tx = optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.lr))
     hidden = cfg.hidden
 
+    def sample(actor: dict, norm: ObsNorm, obs: jax.Array, key: jax.Array):
+        """(normalised obs, action, mean, std) of the Gaussian policy at raw `obs`."""
+        z = norm.apply(obs, cfg.obs_var_floor, cfg.obs_clip)
+        mean, std = action_dist(actor, z, hidden, cfg.min_std)
+        return z, mean + std * jax.random.normal(key, mean.shape), mean, std
+
     def policy(snapshot: dict, obs: jax.Array, key: jax.Array) -> jax.Array:
         """A stochastic action [.., act_dim] of a snapshot at raw observations `obs`."""
-        z = snapshot["norm"].apply(obs, cfg.obs_var_floor, cfg.obs_clip)
-        mean, std = action_dist(snapshot["actor"], z, hidden, cfg.min_std)
-        return mean + std * jax.random.normal(key, mean.shape)
+        return sample(snapshot["actor"], snapshot["norm"], obs, key)[1]
 
     def init(key: jax.Array) -> Runner:
         k_net, k_run = jax.random.split(key)
@@ -126,9 +130,7 @@ def make_train(cfg: ExpertConfig):
 
     def rollout(params, norm, states, key):
         def step(states, k):
-            z = norm.apply(states.obs, cfg.obs_var_floor, cfg.obs_clip)
-            mean, std = action_dist(params["actor"], z, hidden, cfg.min_std)
-            action = mean + std * jax.random.normal(k, mean.shape)
+            z, action, mean, std = sample(params["actor"], norm, states.obs, k)
             nxt = jax.vmap(env.step, in_axes=(0, 0, None))(states, jnp.clip(action, -1, 1),
                                                             env_params)
             out = dict(raw_obs=states.obs, obs=z, action=action,
