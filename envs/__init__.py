@@ -5,21 +5,47 @@
     state = env.step(state, action, params)
 """
 
-from envs.circle import CircleTask, circle_params
-from envs.env import SafetyEnv
-from envs.goal import GoalTask, goal_params
-from envs.robots import CAR, POINT
-from envs.rollout import random_episode
-from envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State
+import contextlib
+import io
 
-# Bump whenever the dynamics or the task rules change (robot models, traction, costs, layouts):
-# cached data sets collected under another version are collected again.
-PHYSICS_VERSION = 2
+
+def _import_mjx_quietly() -> None:
+    """Imports MJX with its optional-backend probe silenced: without NVIDIA Warp installed it
+    prints two 'Failed to import warp...' lines on stdout at import. Anything else it prints is
+    passed through."""
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out):
+        from mujoco import mjx  # noqa: F401
+    for line in out.getvalue().splitlines():
+        if not line.startswith(("Failed to import warp:", "Failed to import mujoco_warp:")):
+            print(line)
+
+
+_import_mjx_quietly()
+
+from envs.circle import CircleTask, circle_params  # noqa: E402
+from envs.env import SafetyEnv  # noqa: E402
+from envs.goal import GoalTask, goal_params  # noqa: E402
+from envs.robots import CAR, POINT  # noqa: E402
+from envs.rollout import random_episode  # noqa: E402
+from envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State  # noqa: E402
+
+# Per robot: bump when that robot's dynamics or sensors, or the task rules it runs under, change
+# (models, traction, sensor models, costs, layouts). Cached data and expert snapshots made under
+# another version are rebuilt. Car 3: the caster's slip and the chassis chatter (sim2sim).
+PHYSICS_VERSIONS = {"Car": 3, "Point": 2}
 
 NAMES = tuple(f"{robot}{task}{level}" for robot in ("Car", "Point") for task in ("Goal", "Circle")
               for level in (1, 2))
 
 _ENVS: dict[str, SafetyEnv] = {}
+
+
+def physics_version(name: str) -> int:
+    """The physics version of task `name`'s robot (`PHYSICS_VERSIONS`); ValueError if unknown."""
+    if name not in NAMES:
+        raise ValueError(f"unknown task {name!r}; valid names: {', '.join(NAMES)}")
+    return PHYSICS_VERSIONS["Car" if name.startswith("Car") else "Point"]
 
 
 def make(name: str) -> tuple[SafetyEnv, EnvParams]:
@@ -41,5 +67,5 @@ def make(name: str) -> tuple[SafetyEnv, EnvParams]:
     return _ENVS[key], params
 
 
-__all__ = ["MAX_HAZARDS", "MAX_VASES", "NAMES", "PHYSICS_VERSION", "EnvParams", "SafetyEnv",
-           "State", "make", "random_episode"]
+__all__ = ["MAX_HAZARDS", "MAX_VASES", "NAMES", "PHYSICS_VERSIONS", "EnvParams", "SafetyEnv",
+           "State", "make", "physics_version", "random_episode"]

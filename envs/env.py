@@ -61,8 +61,9 @@ class SafetyEnv:
         zero = jnp.float32(0.0)
         info = {name: zero for name in self.task.cost_terms()}
         info |= {"goal_met": zero, "steps": jnp.int32(0), "nonfinite_actions": jnp.int32(0)}
-        return State(obs=self._observe(params, data, task), reward=zero, cost=zero, done=zero,
-                     info=info, data=data, task=task, key=k_next)
+        obs = self._observe(params, data, task, _noise_key(k_next))
+        return State(obs=obs, reward=zero, cost=zero, done=zero, info=info, data=data, task=task,
+                     key=k_next)
 
     def step(self, state: State, action: jax.Array, params: EnvParams) -> State:
         """One env step: clip the action to [-1, 1], 10 physics substeps, reward, cost, obs.
@@ -82,10 +83,18 @@ class SafetyEnv:
         info = dict(costs, goal_met=goal_met, steps=steps,
                     nonfinite_actions=state.info["nonfinite_actions"] + jnp.any(~finite))
         done = (steps >= self.episode_length).astype(jnp.float32)
-        return State(obs=self._observe(params, data, task), reward=reward, cost=cost, done=done,
-                     info=info, data=data, task=task, key=key)
+        obs = self._observe(params, data, task, _noise_key(k_goal))
+        return State(obs=obs, reward=reward, cost=cost, done=done, info=info, data=data,
+                     task=task, key=key)
 
-    def _observe(self, params: EnvParams, data: mjx.Data, task: dict) -> jax.Array:
-        sensors = self.robot.sensors(data, task)
+    def _observe(self, params: EnvParams, data: mjx.Data, task: dict,
+                 key: jax.Array) -> jax.Array:
+        sensors = self.robot.sensors(data, task, key)
         return jnp.concatenate([sensors, self.task.observe(params, data, task)]).astype(
             jnp.float32)
+
+
+def _noise_key(key: jax.Array) -> jax.Array:
+    """The sensor-noise key of a step, folded off the step's key so that the split chain (and with
+    it every layout and goal sequence) is the same whether a robot draws noise or not."""
+    return jax.random.fold_in(key, 0x5E115)

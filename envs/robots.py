@@ -138,8 +138,8 @@ class PointRobot(Robot):
         data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, d), data)
         return mjx.forward(m, data), task
 
-    def sensors(self, data: mjx.Data, task: dict) -> jax.Array:
-        """The 12 Point sensors (see `planar_sensors`)."""
+    def sensors(self, data: mjx.Data, task: dict, key: jax.Array) -> jax.Array:
+        """The 12 Point sensors (see `planar_sensors`); noise-free, so `key` is unused."""
         return planar_sensors(data)
 
     def reset_task(self, task: dict) -> dict:
@@ -180,6 +180,12 @@ class CarRobot(Robot):
     slip_speed: float = 0.4  # m/s: sideways slip at which tyre grip saturates
     load_transfer: float = 0.38  # h / L: effective centre-of-mass height over wheelbase
     friction: float = 1.0  # tyre-floor friction coefficient, as the reference's floor
+    caster_roll: float = 0.9  # rolling fraction of the ball (native: 0.90-0.92 below the cap)
+    caster_spin_cap: float = 6.0  # rad/s: the ball slides beyond (native: 5.4-6.1 rad/s)
+    # Std of the chassis chatter per sensor at full drive (fitted to native MuJoCo under random
+    # actions; accelerometer x/y: the part beyond the planar body's own acceleration).
+    chatter_std: tuple[float, ...] = (2.3, 3.6, 4.9, 0.0, 0.0, 0.048, 0.45, 0.65, 0.0, 0.0, 0.0,
+                                      0.006) + (0.0,) * 12
     contacts: tuple[tuple[float, float], ...] = ((-0.13, 0.1), (0.13, 0.1), (0.0, -0.1))
 
     def _loads(self) -> np.ndarray:
@@ -236,7 +242,8 @@ class CarRobot(Robot):
 
     def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
                 task: dict) -> tuple[mjx.Data, dict]:
-        """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale."""
+        """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale;
+        rolls the caster and records the drive level (mean |torque| / limit) for the chatter."""
         m = _scaled_model(model, params)
         torque = params.gear_scale * self.executed_action(action)
         loads = jnp.asarray(self._loads(), jnp.float32)
@@ -250,37 +257,56 @@ class CarRobot(Robot):
         data = mjx.forward(m, push(data))
         dt = N_SUBSTEPS * self.timestep
         quat = _quat_integrate(task["caster_quat"], self._caster_angvel(data, task), dt)
-        return data, {**task, "caster_quat": quat}
+        drive = jnp.mean(jnp.abs(torque)) / self.torque_limit
+        return data, {**task, "caster_quat": quat, "drive": drive}
+
+    def _caster_spin(self, data: mjx.Data) -> jax.Array:
+        """The ball's angular velocity relative to the chassis, in the chassis frame (rad/s).
+
+        Native MuJoCo's ball rolls at `caster_roll` of the no-slip rate (z x v) / r while that
+        stays under `caster_spin_cap`, and slides beyond it (its joint damping against the
+        contact's friction torque). It does not spin about the vertical relative to the
+        chassis: the joint damping drags it round with the chassis, the contact's torsional
+        friction is far weaker.
+        """
+        v_body = rot2(data.qpos[2]).T @ data.qvel[:2]
+        p = jnp.array(self.contacts[2])
+        v = v_body + data.qvel[2] * jnp.array([-p[1], p[0]])
+        spin = self.caster_roll * jnp.array([-v[1], v[0]]) / self.wheel_radius
+        norm = jnp.linalg.norm(spin)
+        spin *= jnp.minimum(1.0, self.caster_spin_cap / jnp.maximum(norm, 1e-12))
+        return jnp.concatenate([spin, jnp.zeros(1)])
 
     def _caster_angvel(self, data: mjx.Data, task: dict) -> jax.Array:
-        """The rolling ball's angular velocity relative to the chassis, in the ball's frame (rad/s).
+        """`_caster_spin` in the ball's own frame, as MuJoCo's ballangvel sensor reports it."""
+        return _quat_to_mat(task["caster_quat"]).T @ self._caster_spin(data)
 
-        A ball of radius r rolling without slip with centre velocity v spins at (z x v) / r in the
-        world (no spin about the vertical); the ball joint reports that minus the chassis yaw
-        rate, expressed in the ball's own frame, as MuJoCo's ballangvel sensor does.
+    def chatter(self, key: jax.Array, task: dict) -> jax.Array:
+        """Contact vibration of the sensors [24]: zero-mean Gaussian noise whose std per channel
+        is `chatter_std` times the drive level of the last step (0 at rest).
+
+        Native MuJoCo's chassis rattles on its four stiff contacts whenever the wheel torques are
+        large: under random actions the accelerometer's z reads 9.5 +- 4.8 m/s^2 and gyro x/y
+        +-0.45/0.64 rad/s, with no relation to the state (R^2 < 0.2 against speeds, yaw rate
+        and actions) and a negative lag-1 autocorrelation; its std grows with the mean |torque|
+        (4.8 / 2.9 / 1.2 m/s^2 at random torques of full / half / quarter range). A planar
+        body cannot rattle, so the sensors get that noise instead (docs/ENVIRONMENTS.md).
         """
-        yaw, omega = data.qpos[2], data.qvel[2]
-        rot = rot2(yaw)
-        p = rot @ jnp.array(self.contacts[2])
-        v = data.qvel[:2] + omega * jnp.array([-p[1], p[0]])
-        w_world = jnp.array([-v[1], v[0], 0.0]) / self.wheel_radius - jnp.array([0, 0, omega])
-        r_ball = _rotz(yaw) @ _quat_to_mat(task["caster_quat"])
-        return r_ball.T @ w_world
+        std = jnp.asarray(self.chatter_std, jnp.float32) * task["drive"]
+        return std * jax.random.normal(key, std.shape)
 
-    def sensors(self, data: mjx.Data, task: dict) -> jax.Array:
-        """The 24 Car sensors: the 12 planar ones, ballangvel_rear (3), ballquat_rear as 3x3 (9)."""
+    def sensors(self, data: mjx.Data, task: dict, key: jax.Array) -> jax.Array:
+        """The 24 Car sensors: the 12 planar ones, ballangvel_rear (3), ballquat_rear as 3x3 (9),
+        plus the contact chatter (`chatter`) drawn with `key`."""
         ang = self._caster_angvel(data, task)
         mat = _quat_to_mat(task["caster_quat"]).reshape(-1)
-        return jnp.concatenate([planar_sensors(data), ang, mat])
+        return jnp.concatenate([planar_sensors(data), ang, mat]) + self.chatter(key, task)
 
     def reset_task(self, task: dict) -> dict:
-        """The caster starts aligned with the chassis (identity), as in the reference."""
-        return {**task, "caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0])}
-
-
-def _rotz(yaw: jax.Array) -> jax.Array:
-    c, s = jnp.cos(yaw), jnp.sin(yaw)
-    return jnp.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        """The caster starts aligned with the chassis (identity), as in the reference, and the
+        car at rest (drive level 0)."""
+        return {**task, "caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0]),
+                "drive": jnp.float32(0.0)}
 
 
 def _quat_to_mat(q: jax.Array) -> jax.Array:

@@ -248,10 +248,11 @@ def test_write_load_round_trip(small_collection, tmp_path):
 
 
 def fake_data(task="PointCircle1", version=COLLECTOR_VERSION, seed=0, episodes=2,
-              physics=envs.PHYSICS_VERSION):
+              physics=None):
     """Tiny data whose attributes (those `is_current` reads) claim a full collection."""
     attrs = {"task": task, "collector_version": version, "seed": seed, "episodes": episodes,
-             "horizon": envs.make(task)[0].episode_length, "physics_version": physics}
+             "horizon": envs.make(task)[0].episode_length,
+             "physics_version": envs.physics_version(task) if physics is None else physics}
     return make_dataset(np.zeros((episodes, 2, 3)), np.zeros((episodes, 2, 2)),
                         np.ones((episodes, 2)), np.zeros((episodes, 2)), np.full(episodes, 2),
                         attrs=attrs)
@@ -280,7 +281,7 @@ def test_ensure_dataset_reuses_and_recollects(tmp_path, monkeypatch):
     assert calls == [("PointCircle1", 6, 0)]
     with h5py.File(path) as f:
         assert f.attrs["collector_version"] == COLLECTOR_VERSION and f.attrs["episodes"] == 6
-    write_dataset(path, fake_data(physics=envs.PHYSICS_VERSION - 1, episodes=50))  # old dynamics
+    write_dataset(path, fake_data(physics=envs.physics_version("PointCircle1") - 1, episodes=50))  # old dynamics
     calls.clear()
     ensure_dataset("PointCircle1", 6, seed=0)
     assert calls == [("PointCircle1", 6, 0)]

@@ -114,3 +114,14 @@ def test_episode_ends_at_time_limit():
     assert float(s.done) == 0.0
     s = step(s, jnp.zeros(2), params)
     assert float(s.done) == 1.0 and int(s.info["steps"]) == env.episode_length
+
+
+def test_import_prints_nothing():
+    """MJX's probe for its optional Warp backend prints two lines when Warp is absent; importing
+    the envs must not show them (a user's first screen is the project's own output)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run([sys.executable, "-c", "import envs"], capture_output=True, text=True,
+                         check=True)
+    assert "warp" not in out.stdout.lower() and out.stdout == ""

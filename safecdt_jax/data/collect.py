@@ -98,7 +98,7 @@ def collect(key: jax.Array, task: str, episodes: int, chunk: int = DEFAULT_CHUNK
         "task": task,
         "env_params": env_params_attrs(task),
         "collector_version": COLLECTOR_VERSION,
-        "physics_version": envs.PHYSICS_VERSION,
+        "physics_version": envs.physics_version(task),
         "behaviour": type(fam).__name__,
         "behaviour_family": dataclasses.asdict(fam),
         "episodes": episodes,
@@ -192,7 +192,7 @@ def is_current(path: str | os.PathLike, task: str, episodes: int, seed: int) -> 
     if attrs is None:
         return False
     return (attrs.get("task") == task and attrs.get("collector_version") == COLLECTOR_VERSION
-            and attrs.get("physics_version") == envs.PHYSICS_VERSION
+            and attrs.get("physics_version") == envs.physics_version(task)
             and attrs.get("seed") == seed and int(attrs.get("episodes", 0)) >= episodes
             and attrs.get("horizon") == envs.make(task)[0].episode_length)
 

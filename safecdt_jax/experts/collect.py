@@ -105,15 +105,16 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
     """`per_snapshot` stochastic episodes of every snapshot in file `path`, as a `Dataset`.
 
     episode_info: 'snapshot' (index in the file), 'run', 'round'. attrs: task, env params,
-    PHYSICS_VERSION, the expert config, the snapshot file's name and SHA-256, and per snapshot
+    physics version, the expert config, the snapshot file's name and SHA-256, and per snapshot
     its schedule, seed and round (`snapshots`). Episodes run `horizon` steps (default: the
     episode length the experts trained on, the task's time limit unless shortened).
     ValueError when the file's physics version is not the current one.
     """
     snaps, meta = load_snapshots(path)
-    if meta["physics_version"] != envs.PHYSICS_VERSION:
-        raise ValueError(f"{os.fspath(path)} was trained under PHYSICS_VERSION "
-                         f"{meta['physics_version']}, the envs are at {envs.PHYSICS_VERSION}: "
+    version = envs.physics_version(meta["task"])
+    if meta["physics_version"] != version:
+        raise ValueError(f"{os.fspath(path)} was trained under physics version "
+                         f"{meta['physics_version']}, {meta['task']} is at {version}: "
                          f"retrain the experts (safecdt-jax expert)")
     if per_snapshot < 1:
         raise ValueError(f"per_snapshot must be >= 1, got {per_snapshot}")
@@ -130,7 +131,7 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
             "run": np.asarray([meta["snapshots"][i]["run"] for i in which], np.float32),
             "round": np.asarray([meta["snapshots"][i]["round"] for i in which], np.float32)}
     attrs = {"task": cfg.task, "env_params": env_params_attrs(cfg.task),
-             "physics_version": envs.PHYSICS_VERSION, "behaviour": "expert",
+             "physics_version": envs.physics_version(cfg.task), "behaviour": "expert",
              "expert_collector_version": EXPERT_COLLECTOR_VERSION, "expert": meta["expert"],
              "snapshot_file": Path(path).name,
              "snapshot_sha256": snapshot_sha256(path),
@@ -233,7 +234,7 @@ def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int) ->
     grid = json.loads(attrs.get("grid_filter", "{}"))
     return (attrs.get("task") == task and attrs.get("snapshot_sha256") == sha
             and attrs.get("expert_collector_version") == EXPERT_COLLECTOR_VERSION
-            and attrs.get("physics_version") == envs.PHYSICS_VERSION
+            and attrs.get("physics_version") == envs.physics_version(task)
             and attrs.get("seed") == seed and grid.get("max_cost") == size.max_cost
             and grid.get("target") == size.episodes)
 

@@ -65,7 +65,7 @@ def select_rounds(rounds: int, keep: int) -> np.ndarray:
 
 def write_snapshots(path: str | os.PathLike, run: ExpertRun, keep: int = 8) -> Path:
     """Writes `keep` snapshots per run (evenly spaced rounds) as one `.npz` (atomically):
-    leaves stacked over snapshots, plus a JSON `meta` with the task, PHYSICS_VERSION, the expert
+    leaves stacked over snapshots, plus a JSON `meta` with the task, its physics version, the expert
     config, and per snapshot its run, cost schedule, seed, round and training-episode totals."""
     rounds = run.curves["return"].shape[1]
     pick = select_rounds(rounds, keep)
@@ -73,7 +73,7 @@ def write_snapshots(path: str | os.PathLike, run: ExpertRun, keep: int = 8) -> P
     rnds = np.tile(pick, len(run.seeds))
     snaps = jax.tree.map(lambda x: np.asarray(x)[runs, rnds], run.snapshots)
     meta = {"format": SNAPSHOT_FORMAT, "task": run.cfg.task,
-            "physics_version": envs.PHYSICS_VERSION, "expert": run.cfg.to_json(),
+            "physics_version": envs.physics_version(run.cfg.task), "expert": run.cfg.to_json(),
             "snapshots": [{"run": int(i), "schedule": run.schedules[i].as_array().tolist(),
                            "seed": run.seeds[i], "round": int(r),
                            "train_return": float(run.curves["return"][i, r]),

@@ -1,0 +1,255 @@
+"""Sim-to-sim: our MJX envs against native Safety-Gymnasium 1.0.0, sensor by sensor and policy by
+policy.
+
+    python -m benchmarks.sim2sim [--tasks CarGoal1,PointGoal1,CarCircle1,PointCircle1]
+        [--episodes 4] [--policy-episodes 32] [--out benchmarks/results/sim2sim.json]
+
+1. Sensors: per observation dimension of the robot's sensors, the mean and std of ours and of
+   Safety-Gymnasium's under uniform random actions (`episodes` x 500 steps each side), their std
+   ratio and the 1-Wasserstein distance between the two marginals (in the dimension's units);
+   and under one open-loop script from rest (`SCRIPT`), the readings at a few steps.
+2. Transfer: the last snapshot of each task's cost-limit-25 (Circle: 20) expert from the committed
+   snapshot files, `policy_episodes` episodes deterministic and stochastic in each simulator:
+   return, cost and goals, and the ratio theirs / ours.
+Needs the peer venv (`python -m benchmarks.peers.setup`); writes a JSON and a markdown table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import machine, markdown_table, write_json
+
+ROOT = Path(__file__).resolve().parents[1]
+NATIVE = ROOT / "benchmarks" / "peers" / "native.py"
+SCRIPT = [(1.0, 1.0)] * 50 + [(1.0, -1.0)] * 30 + [(-1.0, -1.0)] * 30 + [(0.3, 0.8)] * 40
+SCRIPT_STEPS = (0, 20, 49, 65, 79, 110, 139)
+SENSOR_NAMES = {
+    "Point": [f"{s}_{a}" for s in ("acc", "vel", "gyro", "mag") for a in "xyz"],
+    "Car": [f"{s}_{a}" for s in ("acc", "vel", "gyro", "mag", "ballangvel") for a in "xyz"]
+    + [f"ballquat_{i}{j}" for i in range(3) for j in range(3)],
+}
+LIMIT = {"Goal": 25.0, "Circle": 20.0}
+
+
+def native(request: dict) -> dict[str, np.ndarray]:
+    """Runs one request of `benchmarks/peers/native.py` in the peer venv; its arrays."""
+    from benchmarks.peers.setup import venv_python
+
+    python = venv_python("safety-gymnasium")
+    if not python.exists():
+        raise SystemExit("no peer venv: run `python -m benchmarks.peers.setup` first")
+    with tempfile.TemporaryDirectory() as tmp:
+        req, out = Path(tmp) / "request.json", Path(tmp) / "out.npz"
+        req.write_text(json.dumps(request))
+        proc = subprocess.run([str(python), str(NATIVE), str(req), str(out)],
+                              capture_output=True, text=True)
+        if proc.returncode:
+            raise RuntimeError(f"native {request['cmd']} failed:\n{proc.stderr[-3000:]}")
+        with np.load(out) as z:
+            return dict(z)
+
+
+def ours_trace(task: str, episodes: int, steps: int, seed: int, actions=None) -> np.ndarray:
+    """Our observations after each step [episodes, steps, obs_dim], random or scripted actions."""
+    import jax
+    import jax.numpy as jnp
+
+    import envs
+
+    env, params = envs.make(task)
+    script = None if actions is None else jnp.asarray(actions, jnp.float32)
+
+    def episode(key):
+        k_reset, k_act = jax.random.split(key)
+
+        def body(state, x):
+            k, t = x
+            a = jax.random.uniform(k, (2,), minval=-1.0, maxval=1.0) if script is None \
+                else script[t]
+            state = env.step(state, a, params)
+            return state, state.obs
+
+        xs = (jax.random.split(k_act, steps), jnp.arange(steps))
+        return jax.lax.scan(body, env.reset(k_reset, params), xs)[1]
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    return np.asarray(jax.jit(jax.vmap(episode))(keys))
+
+
+def wasserstein1(a: np.ndarray, b: np.ndarray) -> float:
+    """1-Wasserstein distance between two 1-D samples (quantile matching on 200 quantiles)."""
+    q = np.linspace(0.0025, 0.9975, 200)
+    return float(np.mean(np.abs(np.quantile(a, q) - np.quantile(b, q))))
+
+
+def sensor_stats(task: str, episodes: int, seed: int = 0) -> list[dict]:
+    """Per sensor dimension: mean/std ours and theirs under random actions, std ratio, W1."""
+    robot = "Car" if task.startswith("Car") else "Point"
+    names = SENSOR_NAMES[robot]
+    ours = ours_trace(task, episodes, 500, seed)[..., :len(names)].reshape(-1, len(names))
+    theirs = native({"cmd": "trace", "task": task, "episodes": episodes, "steps": 500,
+                     "seed": seed, "actions": None})["obs"][..., :len(names)]
+    theirs = theirs.reshape(-1, len(names))
+    rows = []
+    for i, name in enumerate(names):
+        so, st = float(ours[:, i].std()), float(theirs[:, i].std())
+        rows.append({"dim": i, "name": name, "ours_mean": float(ours[:, i].mean()),
+                     "ours_std": so, "theirs_mean": float(theirs[:, i].mean()), "theirs_std": st,
+                     "std_ratio": so / st if st > 0 else (1.0 if so == 0 else float("inf")),
+                     "w1": wasserstein1(ours[:, i], theirs[:, i])})
+    return rows
+
+
+def script_readings(task: str) -> dict:
+    """Sensor readings of both simulators at `SCRIPT_STEPS` of the open-loop script from rest."""
+    robot = "Car" if task.startswith("Car") else "Point"
+    n = len(SENSOR_NAMES[robot])
+    ours = ours_trace(task, 1, len(SCRIPT), 0, SCRIPT)[0, :, :n]
+    theirs = native({"cmd": "trace", "task": task, "episodes": 1, "steps": len(SCRIPT),
+                     "seed": 0, "actions": SCRIPT})["obs"][0, :, :n]
+    return {"steps": list(SCRIPT_STEPS), "ours": ours[list(SCRIPT_STEPS)].tolist(),
+            "theirs": theirs[list(SCRIPT_STEPS)].tolist()}
+
+
+def export_policy(snapshot_file: Path, index: int, path: Path) -> dict:
+    """Writes snapshot `index` of an expert snapshot file as plain arrays for the native side
+    (kernel_i, bias_i, std, mean, var, var_floor, clip); returns its metadata."""
+    import jax
+
+    from safecdt_jax.experts.config import ExpertConfig
+    from safecdt_jax.experts.export import load_snapshots
+
+    snaps, meta = load_snapshots(snapshot_file)
+    cfg = ExpertConfig.from_json(meta["expert"])
+    one = jax.tree.map(lambda x: np.asarray(x[index]), snaps)
+    dense = one["actor"]["mean"]["params"]
+    arrays = {}
+    for i in range(len(dense)):
+        arrays[f"kernel_{i}"] = dense[f"Dense_{i}"]["kernel"]
+        arrays[f"bias_{i}"] = dense[f"Dense_{i}"]["bias"]
+    arrays["std"] = np.exp(np.maximum(one["actor"]["log_std"], np.log(cfg.min_std)))
+    arrays["mean"], arrays["var"] = one["norm"].mean, one["norm"].var
+    arrays["var_floor"], arrays["clip"] = np.float64(cfg.obs_var_floor), np.float64(cfg.obs_clip)
+    np.savez(path, **arrays)
+    return meta["snapshots"][index]
+
+
+def pick_expert(task: str) -> int:
+    """Index of the last snapshot of the task's cost-limit-`LIMIT` run."""
+    from safecdt_jax.experts.collect import snapshot_path
+    from safecdt_jax.experts.export import load_snapshots
+
+    meta = load_snapshots(snapshot_path(task))[1]
+    limit = LIMIT["Goal" if "Goal" in task else "Circle"]
+    mine = [i for i, s in enumerate(meta["snapshots"]) if s["schedule"][0] == limit]
+    return max(mine, key=lambda i: meta["snapshots"][i]["round"])
+
+
+def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed: int,
+                deterministic: bool) -> dict[str, np.ndarray]:
+    """Per-episode return, cost and goals of one snapshot in our env."""
+    import jax
+
+    import envs
+    from envs.rollout import run_episode
+    from safecdt_jax.experts.config import ExpertConfig
+    from safecdt_jax.experts.export import load_snapshots
+    from safecdt_jax.experts.networks import action_dist
+
+    snaps, meta = load_snapshots(snapshot_file)
+    cfg = ExpertConfig.from_json(meta["expert"])
+    one = jax.tree.map(lambda x: x[index], snaps)
+    env, params = envs.make(task)
+
+    def policy(key, state):
+        z = one["norm"].apply(state.obs, cfg.obs_var_floor, cfg.obs_clip)
+        mean, std = action_dist(one["actor"], z, cfg.hidden, cfg.min_std)
+        return mean if deterministic else mean + std * jax.random.normal(key, mean.shape)
+
+    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    out = jax.jit(jax.vmap(lambda k: run_episode(env, params, k, policy)))(keys)
+    return {k: np.asarray(out[k]) for k in ("return", "cost", "goals")}
+
+
+def transfer(task: str, episodes: int) -> list[dict]:
+    """The task's limit-25 (Circle: 20) expert in both simulators, deterministic and stochastic."""
+    from safecdt_jax.experts.collect import snapshot_path
+
+    index = pick_expert(task)
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        weights = Path(tmp) / "policy.npz"
+        info = export_policy(snapshot_path(task), index, weights)
+        for det in (True, False):
+            o = ours_policy(task, snapshot_path(task), index, episodes, 0, det)
+            t = native({"cmd": "policy", "task": task, "weights": str(weights),
+                        "episodes": episodes, "seed": 0, "deterministic": det})
+            row = {"task": task, "snapshot": index, "limit": info["schedule"][0],
+                   "round": info["round"], "deterministic": det, "episodes": episodes}
+            for k in ("return", "cost", "goals"):
+                row[f"ours_{k}"], row[f"theirs_{k}"] = float(o[k].mean()), float(t[k].mean())
+            row["return_ratio"] = row["theirs_return"] / row["ours_return"]
+            row["cost_ratio"] = row["theirs_cost"] / max(row["ours_cost"], 1e-9)
+            rows.append(row)
+    return rows
+
+
+def report(results: dict) -> str:
+    """Markdown: one sensor table per task, then the transfer table."""
+    out = []
+    for task, rows in results["sensors"].items():
+        out += [f"### {task}: sensors under uniform random actions", "", markdown_table(
+            ["dim", "name", "ours mean", "ours std", "theirs mean", "theirs std", "std ratio",
+             "W1"],
+            [[r["dim"], r["name"], f"{r['ours_mean']:.3f}", f"{r['ours_std']:.3f}",
+              f"{r['theirs_mean']:.3f}", f"{r['theirs_std']:.3f}", f"{r['std_ratio']:.2f}",
+              f"{r['w1']:.3f}"] for r in rows]), ""]
+        off = [r["name"] for r in rows if not 0.5 <= r["std_ratio"] <= 2.0]
+        out += [f"std within a factor of 2: {len(rows) - len(off)} of {len(rows)}"
+                + (f" (off: {', '.join(off)})" if off else ""), ""]
+    if results.get("transfer"):
+        out += ["### Expert transfer, ours -> Safety-Gymnasium", "", markdown_table(
+            ["task", "limit", "policy", "return ours", "return theirs", "ratio", "cost ours",
+             "cost theirs", "goals ours", "goals theirs"],
+            [[r["task"], f"{r['limit']:g}", "deterministic" if r["deterministic"] else
+              "stochastic", f"{r['ours_return']:.1f}", f"{r['theirs_return']:.1f}",
+              f"{r['return_ratio']:.2f}", f"{r['ours_cost']:.1f}", f"{r['theirs_cost']:.1f}",
+              f"{r['ours_goals']:.1f}", f"{r['theirs_goals']:.1f}"]
+             for r in results["transfer"]]), ""]
+    return "\n".join(out)
+
+
+def main() -> None:
+    """Command line: measure, print the tables, write JSON and markdown."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--tasks", default="CarGoal1,PointGoal1,CarCircle1,PointCircle1")
+    ap.add_argument("--episodes", type=int, default=4)
+    ap.add_argument("--policy-episodes", type=int, default=32)
+    ap.add_argument("--no-transfer", action="store_true")
+    ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/sim2sim.json")
+    args = ap.parse_args()
+    t = time.perf_counter()
+    tasks = args.tasks.split(",")
+    results = {"machine": machine(), "command": "python -m benchmarks.sim2sim " + " ".join(
+        f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out"),
+        "sensors": {task: sensor_stats(task, args.episodes) for task in tasks},
+        "script": {task: script_readings(task) for task in tasks if task.startswith("Car")},
+        "transfer": [] if args.no_transfer else
+        [r for task in tasks for r in transfer(task, args.policy_episodes)]}
+    results["seconds"] = time.perf_counter() - t
+    text = report(results)
+    print(text)
+    write_json(args.out, results)
+    args.out.with_suffix(".md").write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()
