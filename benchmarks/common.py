@@ -10,6 +10,7 @@ from pathlib import Path
 import jax
 
 from safecdt_jax.data.dataset import atomic_path
+from safecdt_jax.report.tables import markdown_table  # noqa: F401  (one home; re-exported)
 
 
 def machine() -> dict:
@@ -44,13 +45,6 @@ def write_json(path: str | Path, payload: dict) -> None:
     """Writes `payload` to `path` atomically (temp file in the same folder, then rename)."""
     with atomic_path(path, suffix=".json") as tmp, open(tmp, "w") as f:
         json.dump(payload, f, indent=2)
-
-
-def markdown_table(headers: list[str], rows: list[list]) -> str:
-    """A GitHub markdown table."""
-    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
-    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
-    return "\n".join(lines)
 
 
 def stats(xs: list[float]) -> dict:

@@ -28,8 +28,8 @@ RETURN_RATIOS = (0.5, 1.0)
 def run_one(task: str, seed: int, episodes: int) -> dict:
     """Pretrain (or reuse) seed `seed`'s CDT on `task`'s default data and evaluate it."""
     from safecdt_jax import paths
+    from safecdt_jax.analysis.evaluate import evaluate_checkpoint
     from safecdt_jax.data import summarize_dataset
-    from safecdt_jax.deploy.evaluate import evaluate_checkpoint
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pretrain.checkpoint import read_meta
     from safecdt_jax.pretrain.run import ensure_checkpoint

@@ -10,7 +10,7 @@ JSON (`benchmarks/results/lora_response.json` by default).
         --target CarCircle2 [--variants naive_lora,safe_cdt] [--seeds 4] [--budget 30]
 
 The replay windows of the finetuning carry hindsight tokens (the costs-to-go the episodes
-realised, METHOD.md section 4), so this shows whether the adapters move the model's response
+realised, docs/METHOD.md section 4), so this shows whether the adapters move the model's response
 toward the costs realised at the deployment's targets.
 """
 

@@ -1,4 +1,4 @@
-"""The peer benchmark of issue 6 in one command: this project against Safety-Gymnasium + OSRL.
+"""The peer benchmark in one command: this project against Safety-Gymnasium + OSRL.
 
 Installs the peers into `.peers/` if missing (`benchmarks/peers/setup.py`), starts one worker
 per peer environment, then measures the same work on both sides, alternating A B A B, at the

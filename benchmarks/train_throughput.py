@@ -4,9 +4,9 @@ Training: one jitted `train_chunk` call (`lax.scan` over updates, each sampling 
 on the device from synthetic episodes of the task's sizes, then OSRL's AdamW + temperature step,
 dropout on), timed after compilation; median of `--repeats` calls. Inference: `last_action` on a
 full K-step window (the deployment's per-step call) at batch 1 and 15.
-Reference: OSRL's own `CDTTrainer.train_one_step` (PyTorch 2, one CPU thread, this machine class;
-docs OSRL_REFERENCE.md 6.2): 184 ms at batch 64, 736 ms at 256, ~11.5 s at 2048; 1.8 ms per
-forward at batch 1.
+Reference: OSRL's own `CDTTrainer.train_one_step` (PyTorch 2, one CPU thread, this machine class,
+measured by `benchmarks.run_all`, BENCHMARKS.md): 184 ms at batch 64, 736 ms at 256, ~11.5 s
+at 2048; 1.8 ms per forward at batch 1.
 
     python -m benchmarks.train_throughput [--runs "osrl:64,256,2048;cpu:32,64"] [--tasks CarGoal]
 """

@@ -281,7 +281,8 @@ def test_ensure_dataset_reuses_and_recollects(tmp_path, monkeypatch):
     assert calls == [("PointCircle1", 6, 0)]
     with h5py.File(path) as f:
         assert f.attrs["collector_version"] == COLLECTOR_VERSION and f.attrs["episodes"] == 6
-    write_dataset(path, fake_data(physics=envs.physics_version("PointCircle1") - 1, episodes=50))  # old dynamics
+    old = envs.physics_version("PointCircle1") - 1  # data from older dynamics
+    write_dataset(path, fake_data(physics=old, episodes=50))
     calls.clear()
     ensure_dataset("PointCircle1", 6, seed=0)
     assert calls == [("PointCircle1", 6, 0)]

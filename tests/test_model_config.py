@@ -80,7 +80,7 @@ def test_invalid_configs_raise_one_line(make):
 
 @pytest.mark.parametrize(
     "obs, act, horizon, expected",
-    [  # OSRL_REFERENCE.md 1.5 (OSRL's model instantiated in PyTorch)
+    [  # OSRL's default CDT instantiated in PyTorch, parameters counted
         (72, 2, 1000, 744_910),  # CarGoal1/2
         (60, 2, 1000, 741_826),  # PointGoal1/2
         (40, 2, 500, 672_686),  # CarCircle1/2

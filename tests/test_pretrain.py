@@ -218,7 +218,7 @@ def test_plan_task_and_default_folder(data_file, tmp_path, monkeypatch):
 
 
 def test_shuffle_gaps_are_zero_for_a_token_the_model_cannot_see(full_run, data_file):
-    from safecdt_jax.pretrain.diagnose import conditioning_gaps, shuffle_gaps
+    from safecdt_jax.analysis.diagnose import conditioning_gaps, shuffle_gaps
 
     gaps = conditioning_gaps(full_run.path, data_file, windows=64, seed=3)
     assert gaps == conditioning_gaps(full_run.path, data_file, windows=64, seed=3)

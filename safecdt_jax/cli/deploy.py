@@ -7,10 +7,14 @@ from typing import Annotated
 import typer
 
 from safecdt_jax.cli.app import app
+from safecdt_jax.deploy.config import VARIANT_SPECS, DeployConfig
+from safecdt_jax.progress import Bar
 
+# Defaults come from the configs, so the CLI cannot drift from them.
+_DEFAULT = DeployConfig()
+DEFAULT_BUDGET = f"{_DEFAULT.budget:g}"
 Variants = Annotated[str, typer.Option(
-    help="Comma-separated variants: safe_cdt, no_reweight, scheduler_only, zero_shot, "
-         "naive_lora, fixed_ctg(r), step_change(r1,r2).")]
+    help="Comma-separated variants: " + ", ".join(VARIANT_SPECS) + ".")]
 Budgets = Annotated[str, typer.Option(help="Comma-separated cost budgets B (cost units).")]
 Seeds = Annotated[int, typer.Option(min=1, help="Seeds, all in one vmapped call.")]
 Episodes = Annotated[int, typer.Option(min=1, help="Deployment episodes per seed.")]
@@ -21,9 +25,7 @@ def _fail(e: Exception) -> None:
     raise typer.Exit(1) from e
 
 
-def _deploy_config(episodes: int, horizon: int | None):
-    from safecdt_jax.deploy.config import DeployConfig
-
+def _deploy_config(episodes: int, horizon: int | None) -> DeployConfig:
     return DeployConfig(episodes=episodes, horizon=horizon)
 
 
@@ -59,9 +61,9 @@ def deploy(
     pair: Annotated[str, typer.Option(help="Source-target pair: CG1-CG2, CC1-CC2, PC1-PC2, "
                                            "PG1-PG2 (the checkpoint must fit its target).")],
     variant: Variants = "zero_shot,safe_cdt",
-    budget: Budgets = "30",
+    budget: Budgets = DEFAULT_BUDGET,
     seeds: Seeds = 15,
-    episodes: Episodes = 50,
+    episodes: Episodes = _DEFAULT.episodes,
     horizon: Annotated[int | None, typer.Option(
         min=1, help="Cut every episode at this many steps (default: the task's).")] = None,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
@@ -82,9 +84,9 @@ def deploy(
 @app.command()
 def run(
     pair: Annotated[str, typer.Option(help="CG1-CG2, CC1-CC2, PC1-PC2 or PG1-PG2.")] = "CG1-CG2",
-    budget: Budgets = "30",
+    budget: Budgets = DEFAULT_BUDGET,
     seeds: Seeds = 15,
-    episodes: Episodes = 50,
+    episodes: Episodes = _DEFAULT.episodes,
     variant: Variants = "safe_cdt",
     preset: Annotated[str, typer.Option(help="CDT preset: tiny, cpu, osrl, paper.")] = "cpu",
     data_episodes: Annotated[int | None, typer.Option(
@@ -112,8 +114,8 @@ def run(
         typer.echo(f"[1/3] source data: {source}, {behaviour} behaviour")
         total = (data_episodes or 1000) if behaviour == "scripted" else planned_episodes(
             source, data_episodes)
-        data = _with_bar(total, f"collect {source}", lambda bar: ensure_source_data(
-            source, behaviour, data_episodes, seed, progress=bar))
+        with Bar(total, f"collect {source}") as bar:
+            data = ensure_source_data(source, behaviour, data_episodes, seed, progress=bar.update)
         typer.echo(f"      {data}")
         typer.echo(f"[2/3] pretrained CDT: preset {preset}")
         # The cache is run's own: a checkpoint of older data (e.g. recollected after a
@@ -127,25 +129,6 @@ def run(
     except ValueError as e:
         _fail(e)
     typer.echo(f"total {time.perf_counter() - start:.0f} s")
-
-
-def _with_bar(total: int, desc: str, fn):
-    """Run `fn(update)` with a tqdm bar that is only shown if `fn` reports progress."""
-    from tqdm import tqdm
-
-    bar = None
-
-    def update(n: int) -> None:
-        nonlocal bar
-        if bar is None:
-            bar = tqdm(total=total, desc=desc, unit="episode")
-        bar.update(n)
-
-    try:
-        return fn(update)
-    finally:
-        if bar is not None:
-            bar.close()
 
 
 @app.command()
@@ -168,13 +151,13 @@ def evaluate(
     import json
 
     try:
-        from safecdt_jax.data import summarize_dataset
-        from safecdt_jax.data.dataset import write_text_atomic
-        from safecdt_jax.deploy.evaluate import (
+        from safecdt_jax.analysis.evaluate import (
             evaluate_checkpoint,
             evaluation_table,
             parse_targets,
         )
+        from safecdt_jax.data import summarize_dataset
+        from safecdt_jax.data.dataset import write_text_atomic
 
         pairs = parse_targets(targets)
         median = None if data is None else summarize_dataset(data)["cost_median"]

@@ -91,7 +91,7 @@ def diagnose(
 ) -> None:
     """Shuffle test: how much the action log-likelihood drops when the return-to-go, cost-to-go
     or timestep tokens are permuted across training windows (nats per action dim)."""
-    from safecdt_jax.pretrain.diagnose import TOKENS, conditioning_gaps
+    from safecdt_jax.analysis.diagnose import TOKENS, conditioning_gaps
 
     try:
         gaps = conditioning_gaps(ckpt, data, windows, seed)
@@ -127,9 +127,9 @@ def bc(
     import numpy as np
 
     import envs
+    from safecdt_jax.analysis.bc import BCConfig, cloned_episodes, cost_band, evaluate_bc, fit_bc
     from safecdt_jax.data.dsrl import load_dataset
     from safecdt_jax.data.windows import episode_costs, episode_returns
-    from safecdt_jax.pretrain.bc import BCConfig, cloned_episodes, cost_band, evaluate_bc, fit_bc
 
     try:
         cfg = BCConfig(steps=steps, max_cost=max_cost, min_cost=min_cost,

@@ -1,4 +1,4 @@
-"""A fixed-size episode buffer for the online deployment loop (METHOD.md section 4).
+"""A fixed-size episode buffer for the online deployment loop (docs/METHOD.md section 4).
 
 Shapes never change, so adding and sampling live inside one jit-ed / scanned program. The same
 `sample_windows` works on it: with `weights=None` windows are drawn uniformly over the valid

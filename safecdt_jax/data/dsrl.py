@@ -1,6 +1,6 @@
 """DSRL-format HDF5 files: write ours, read ours and real DSRL files into a padded `Dataset`.
 
-On disk (OSRL_REFERENCE 5.1): flat datasets, one row per transition, episodes contiguous and split
+On disk (docs/METHOD.md A.1): flat datasets, one row per transition, episodes contiguous and split
 by `terminals | timeouts`. Our files add file attributes and an optional `episode_info` group of
 per-episode arrays; DSRL readers ignore both.
 """

@@ -1,4 +1,4 @@
-"""OSRL's Pareto-frontier return relabelling ("augmentation", OSRL_REFERENCE 2.6), in numpy.
+"""OSRL's Pareto-frontier return relabelling ("augmentation", docs/METHOD.md A.3), in numpy.
 
 A preprocessing step run once before training: it appends relabelled copies of real episodes whose
 whole return-to-go and cost-to-go sequences are shifted by per-episode constants (via
@@ -120,7 +120,7 @@ def _associate(rng, c_f, r_f, targets, cfg: RelabelConfig) -> np.ndarray:
 
 
 def relabel_pareto(key_or_rng, data: Dataset, cfg: RelabelConfig = RelabelConfig()) -> Dataset:
-    """Append Pareto-relabelled copies of episodes (OSRL CDT augmentation, reference 2.6).
+    """Append Pareto-relabelled copies of episodes (OSRL CDT augmentation, docs/METHOD.md A.3).
 
     1. Per-episode (C_i, R_i) = cost-/return-to-go at t=0, raw units. 2. Grid-filter to F
     (`grid_filter`). 3. Fit a degree-`deg` polynomial f to the Pareto front of F. 4. n =

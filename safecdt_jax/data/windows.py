@@ -124,7 +124,7 @@ def sample_windows(
     reward_scale: float = 0.1,
     cost_scale: float = 1.0,
 ) -> Windows:
-    """Sample `batch` windows of `K` steps, as OSRL's SequenceDataset (reference 2.4).
+    """Sample `batch` windows of `K` steps, as OSRL's SequenceDataset (docs/METHOD.md A.2).
 
     An episode is drawn with probability proportional to `weights` [n] (e.g. `trajectory_weights`;
     empty episodes never), or, with `weights=None`, proportional to its length, i.e. uniform over

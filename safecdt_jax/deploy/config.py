@@ -1,9 +1,10 @@
-"""Deployment settings (METHOD.md sections 1-5) and the method variants as data.
+"""Deployment settings (docs/METHOD.md sections 1-5) and the method variants as data.
 
 `DeployConfig` is a frozen, hashable dataclass: every number of the deployment loop, static under
 `jax.jit`. `Variant` is a pytree of arrays: which parts of Safe-CDT are on (scheduler,
 reweighting, LoRA) and the fixed cost ratios of the non-adaptive baselines, so that every variant
-of METHOD.md section 5 runs through ONE compiled program and a stack of variants can be vmapped.
+of docs/METHOD.md section 5 runs through ONE compiled program and a stack of variants can be
+vmapped.
 """
 
 from __future__ import annotations
@@ -16,10 +17,12 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
+from safecdt_jax import validate as check
+
 
 @dataclass(frozen=True)
 class DeployConfig:
-    """Every number of the Safe-CDT deployment loop (defaults = METHOD.md).
+    """Every number of the Safe-CDT deployment loop (defaults = docs/METHOD.md).
 
     Attributes:
         episodes: deployment length E in episodes (50; step-change runs use 100).
@@ -43,7 +46,7 @@ class DeployConfig:
         rr0: initial return ratio RR_0 (0.5); RTG target = RR * R_ref. Fixed when the scheduler
             is off.
         rr_step: step of the return ratio per stage (0.1), no momentum.
-        rr_min, rr_max: bounds of RR; METHOD.md leaves them open. 0.1 keeps a positive return
+        rr_min, rr_max: bounds of RR; docs/METHOD.md leaves them open. 0.1 keeps a positive return
             target (asking for nothing makes the CDT's return token uninformative); 1.5 allows
             asking 50% above the source's 95th-percentile return, far enough to probe the return
             the target domain allows but not so far that the RTG token leaves the pretraining
@@ -62,8 +65,8 @@ class DeployConfig:
         lora_steps: Adam steps on the adapters after every episode (10).
         lora_batch: replay sequences per step (32), each of the model's context length K.
         lora_lr: Adam learning rate of the adapters (1e-4).
-        lora_dropout: run the CDT with its dropout during adapter training. METHOD.md is silent;
-            default False (deterministic forward pass): with 10 steps of 32 sequences per
+        lora_dropout: run the CDT with its dropout during adapter training. The paper is
+            silent; default False (deterministic forward pass): with 10 steps of 32 sequences per
             episode, dropout noise would dominate the small gradient signal, and the adapters are
             trained for exactly the forward pass the deployment uses (evaluation mode).
         reward_scale: the RTG token is RTG * reward_scale (0.1, OSRL's). Must be the scale the
@@ -108,22 +111,12 @@ class DeployConfig:
     clip_ctg: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("episodes", "stage_len", "window", "lora_steps", "lora_batch"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise ValueError(f"DeployConfig.{name} must be a positive integer, got {value!r}")
-        h = self.horizon
-        if h is not None and (isinstance(h, bool) or not isinstance(h, int) or h <= 0):
-            raise ValueError(f"DeployConfig.horizon must be None or a positive integer, got {h!r}")
-        w = self.lambda_warmup
-        if isinstance(w, bool) or not isinstance(w, int) or w < 0:
-            raise ValueError(f"DeployConfig.lambda_warmup must be an integer >= 0, got {w!r}")
-        positive = ("z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr",
-                    "reward_scale", "cost_scale")
-        for name in positive:
-            value = getattr(self, name)
-            if not value > 0:
-                raise ValueError(f"DeployConfig.{name} must be positive, got {value!r}")
+        check.integers(self, "episodes", "stage_len", "window", "lora_steps", "lora_batch")
+        check.integers(self, "horizon", optional=True)
+        check.integers(self, "lambda_warmup", minimum=0)
+        check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr",
+                       "reward_scale", "cost_scale")
+        check.booleans(self, "lora_dropout", "clip_ctg")
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")
         if not 1 <= self.momentum_factor <= self.momentum_max:
@@ -175,7 +168,7 @@ VARIANT_SPECS: tuple[str, ...] = (
     "fixed_ctg(r)", "step_change(r1,r2)", "step_change(r1,r2,switch)",
 )
 
-# (scheduler, reweight, lora) of the named variants; METHOD.md section 5. A "-" in METHOD's
+# (scheduler, reweight, lora) of the named variants; docs/METHOD.md section 5. A "-" in that
 # table (reweighting without LoRA has no effect) is off here, so lambda is logged as 0 there.
 _FLAGS = {
     "safe_cdt": (True, True, True),
@@ -202,7 +195,7 @@ def _variant(flags, cr_first: float, cr_second: float, switch: int) -> Variant:
 
 
 def make_variant(spec: str, cfg: DeployConfig | None = None) -> Variant:
-    """Parse a variant name of METHOD.md section 5 into a `Variant`.
+    """Parse a variant name of docs/METHOD.md section 5 into a `Variant`.
 
     `safe_cdt`, `no_reweight`, `scheduler_only`, `zero_shot`, `naive_lora`, `fixed_ctg(r)`
     (CR = r throughout, no adaptation) and `step_change(r1,r2)` (also `r1->r2`; CR = r1 before

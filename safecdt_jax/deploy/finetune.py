@@ -1,4 +1,4 @@
-"""Online LoRA finetuning of the CDT on the deployment buffer (METHOD.md section 4).
+"""Online LoRA finetuning of the CDT on the deployment buffer (docs/METHOD.md section 4).
 
 After every episode: `cfg.lora_steps` Adam steps on the adapters only (the base params are a
 constant of the loss), each on `cfg.lora_batch` K-step windows drawn uniformly over the buffer's

@@ -105,6 +105,7 @@ def run_deployment(
     from safecdt_jax.deploy.loop import make_spec, seed_keys
     from safecdt_jax.deploy.sweep import stack_specs, sweep
     from safecdt_jax.pretrain.run import versions
+    from safecdt_jax.progress import Bar
     from safecdt_jax.report.tables import summarize_runs
 
     if seeds < 1:
@@ -116,7 +117,7 @@ def run_deployment(
     chunk = cfg.stage_len if cfg.episodes % cfg.stage_len == 0 else cfg.episodes
     label = f"deploy {len(combos)} run(s) x {seeds} seeds"
     start = time.perf_counter()
-    with _bar(cfg.episodes, label, progress) as bar:
+    with Bar(cfg.episodes, label, enabled=progress) as bar:
         metrics = sweep(keys, policy.params, env_params, specs, env=env, model_cfg=policy.cfg,
                         cfg=cfg, chunk=chunk, progress=bar.update)
         metrics = jax.device_get(metrics)
@@ -151,28 +152,6 @@ def run_deployment(
     }
 
 
-class _bar:
-    """A tqdm bar over episodes, or a no-op when progress is off."""
-
-    def __init__(self, total: int, desc: str, enabled: bool):
-        self.total, self.desc, self.enabled = total, desc, enabled
-
-    def __enter__(self):
-        if self.enabled:
-            from tqdm import tqdm
-
-            self.bar = tqdm(total=self.total, desc=self.desc, unit="episode")
-        return self
-
-    def update(self, n: int) -> None:
-        if self.enabled:
-            self.bar.update(n)
-
-    def __exit__(self, *exc) -> None:
-        if self.enabled:
-            self.bar.close()
-
-
 def run_label(run: dict[str, Any], budgets: int) -> str:
     """A run's row label: the variant, plus the budget when several budgets were run."""
     return run["variant"] + (f" B={run['budget']:g}" if budgets > 1 else "")
@@ -182,7 +161,7 @@ def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: st
     """Write `results.json`, `table.md` and the figures into `out_dir` (each atomically)."""
     from safecdt_jax.data.dataset import write_text_atomic
     from safecdt_jax.report.figures import plot_deployment
-    from safecdt_jax.report.tables import markdown_table
+    from safecdt_jax.report.tables import results_table
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -195,7 +174,7 @@ def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: st
               f"reward, cost and VR as mean ± std over seeds (population std); "
               f"deployment {timing['deploy_s']:.0f} s "
               f"({timing['env_steps_per_s']:,.0f} env steps/s).\n\n")
-    written.append(write_text_atomic(out / "table.md", header + markdown_table(rows)))
+    written.append(write_text_atomic(out / "table.md", header + results_table(rows)))
     for budget in budgets:
         runs = {run_label(r, 1): r["metrics"] for r in results["runs"] if r["budget"] == budget}
         folder = out if len(budgets) == 1 else out / f"budget_{budget:g}"

@@ -1,4 +1,4 @@
-"""The Safe-CDT deployment (METHOD.md) as one pure function, and sweeps of it as one call.
+"""The Safe-CDT deployment (docs/METHOD.md) as one pure function, and sweeps of it as one call.
 
 `deploy` runs `cfg.episodes` episodes as one `lax.scan`; each episode is itself a `lax.scan` over
 the env horizon (`rollout.cdt_episode`), and the online buffer is a fixed-size `EpisodeBuffer`.

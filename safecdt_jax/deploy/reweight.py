@@ -1,4 +1,4 @@
-"""Cost-aware replay reweighting (METHOD.md section 3; paper eq. 3 and 5).
+"""Cost-aware replay reweighting (docs/METHOD.md section 3; paper eq. 3 and 5).
 
 A multiplier lambda tracks the recent violation rate: it rises fast when more than v* of the
 window's episodes exceed the budget and decays slowly otherwise. Replay sequences whose realized

@@ -4,8 +4,9 @@ The policy sees a window of the last K steps. Before step K-1 the window is left
 steps sit at its right end with `mask` 1 and padding at its left with `mask` 0, so the model's
 causal, key-masked attention gives the same action as running it on the unpadded prefix
 (`tests/test_deploy_rollout.py` checks this). After each step the targets are decremented by what
-was realized: `rtg -= r_t`, `ctg -= c_t` (METHOD.md section 1), in raw units; the model reads the
-return-to-go times `reward_scale` and the cost-to-go times `cost_scale`, as in pretraining.
+was realized: `rtg -= r_t`, `ctg -= c_t` (docs/METHOD.md section 1), in raw units; the model
+reads the return-to-go times `reward_scale` and the cost-to-go times `cost_scale`, as in
+pretraining.
 """
 
 from __future__ import annotations
@@ -100,8 +101,8 @@ def cdt_episode(
         target_return: initial return-to-go, raw return units (traced scalar ok).
         target_cost: initial cost-to-go, raw cost units = cost steps (traced scalar ok).
         reward_scale, cost_scale: the pretraining scales of the RTG / CTG tokens.
-        clip_ctg: clip the cost-to-go at 0 once the budget is spent (METHOD default); False keeps
-            OSRL's rule of letting it go negative.
+        clip_ctg: clip the cost-to-go at 0 once the budget is spent (default, docs/METHOD.md
+            section 1); False keeps OSRL's rule of letting it go negative.
         horizon: steps T to run (static); None = the env's time limit. A shorter horizon cuts
             the episode there (for tests and quick looks).
 

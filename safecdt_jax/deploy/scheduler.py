@@ -1,4 +1,4 @@
-"""The cost-prioritised adaptive target scheduler (METHOD.md section 2).
+"""The cost-prioritised adaptive target scheduler (docs/METHOD.md section 2).
 
 Every U episodes the scheduler looks at the last W finished episodes and moves the cost ratio CR
 (CTG target = CR * B) by a momentum step driven by the Wilson lower bound A_C of "episode cost
@@ -91,7 +91,7 @@ def scheduler_update(
     budget,
     cfg: DeployConfig,
 ) -> tuple[SchedulerState, jax.Array, jax.Array]:
-    """One stage update of CR and RR from the window (METHOD.md section 2), unconditionally.
+    """One stage update of CR and RR from the window (docs/METHOD.md section 2), unconditionally.
 
     Args:
         state: the current scheduler state.

@@ -9,6 +9,8 @@ from typing import Any
 
 import numpy as np
 
+from safecdt_jax import validate as check
+
 
 @dataclass(frozen=True)
 class ExpertConfig:
@@ -76,14 +78,8 @@ class ExpertConfig:
         if self.task not in envs.NAMES:
             raise ValueError(f"ExpertConfig.task: unknown task {self.task!r}; valid names: "
                              f"{', '.join(envs.NAMES)}")
-        for name in ("steps", "num_envs", "rollout_len", "epochs", "minibatches"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise ValueError(f"ExpertConfig.{name} must be a positive integer, got {value!r}")
-        if self.episode_len is not None and (not isinstance(self.episode_len, int)
-                                             or self.episode_len <= 0):
-            raise ValueError(f"ExpertConfig.episode_len must be None or a positive integer, "
-                             f"got {self.episode_len!r}")
+        check.integers(self, "steps", "num_envs", "rollout_len", "epochs", "minibatches")
+        check.integers(self, "episode_len", optional=True)
         if self.horizon % self.rollout_len:
             raise ValueError(f"ExpertConfig.rollout_len ({self.rollout_len}) must divide the "
                              f"episode length ({self.horizon})")
@@ -92,17 +88,9 @@ class ExpertConfig:
                              f"num_envs * rollout_len ({self.num_envs * self.rollout_len})")
         if not self.hidden or any(not isinstance(h, int) or h <= 0 for h in self.hidden):
             raise ValueError(f"ExpertConfig.hidden must be positive integers, got {self.hidden!r}")
-        for name in ("lr", "max_grad_norm", "clip_eps", "init_std", "min_std", "obs_clip"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"ExpertConfig.{name} must be positive, got "
-                                 f"{getattr(self, name)!r}")
-        for name in ("gamma", "gae_lambda", "pid_ema"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ValueError(f"ExpertConfig.{name} must lie in [0, 1], got "
-                                 f"{getattr(self, name)!r}")
-        for name in ("ent_coef", "pid_kp", "pid_ki", "pid_kd", "obs_var_floor"):
-            if not getattr(self, name) >= 0:
-                raise ValueError(f"ExpertConfig.{name} must be >= 0, got {getattr(self, name)!r}")
+        check.positive(self, "lr", "max_grad_norm", "clip_eps", "init_std", "min_std", "obs_clip")
+        check.unit_interval(self, "gamma", "gae_lambda", "pid_ema")
+        check.non_negative(self, "ent_coef", "pid_kp", "pid_ki", "pid_kd", "obs_var_floor")
 
     @property
     def horizon(self) -> int:

@@ -10,6 +10,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from safecdt_jax import validate as check
+
 # Sizes of the named presets: (embed_dim, num_layers, num_heads, seq_len, lora_rank, lora_alpha).
 _PRESETS: dict[str, dict[str, Any]] = {
     # Smallest model that still exercises every code path (multi-head, padding, LoRA); for tests.
@@ -83,26 +85,16 @@ class CDTConfig:
     lora_targets: tuple[str, ...] = ("query", "value")
 
     def __post_init__(self) -> None:
-        positive = (
-            "obs_dim", "act_dim", "episode_len", "embed_dim", "num_layers", "num_heads",
-            "seq_len", "mlp_ratio", "lora_rank",
-        )
-        for name in positive:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise ValueError(f"CDTConfig.{name} must be a positive integer, got {value!r}")
+        check.integers(self, "obs_dim", "act_dim", "episode_len", "embed_dim", "num_layers",
+                       "num_heads", "seq_len", "mlp_ratio", "lora_rank")
         if self.embed_dim % self.num_heads:
             raise ValueError(
                 f"CDTConfig.embed_dim ({self.embed_dim}) must be divisible by "
                 f"num_heads ({self.num_heads})"
             )
-        for name in ("embedding_dropout", "attention_dropout", "residual_dropout"):
-            rate = getattr(self, name)
-            if not 0.0 <= rate < 1.0:
-                raise ValueError(f"CDTConfig.{name} must be in [0, 1), got {rate!r}")
-        for name in ("max_action", "lora_alpha", "layernorm_eps"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"CDTConfig.{name} must be positive, got {getattr(self, name)!r}")
+        check.unit_interval(self, "embedding_dropout", "attention_dropout", "residual_dropout",
+                            open_right=True)
+        check.positive(self, "max_action", "lora_alpha", "layernorm_eps")
         if self.cost_loss_weight < 0 or self.state_loss_weight < 0:
             raise ValueError("CDTConfig loss weights must be non-negative")
         if self.state_loss_weight > 0 and not self.use_state_head:

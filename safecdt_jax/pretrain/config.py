@@ -6,6 +6,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from safecdt_jax import validate as check
+
 
 @dataclass(frozen=True)
 class PretrainConfig:
@@ -54,22 +56,10 @@ class PretrainConfig:
     max_to_keep: int = 2
 
     def __post_init__(self) -> None:
-        for name in ("steps", "batch_size", "chunk", "max_to_keep"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value <= 0:
-                raise ValueError(f"PretrainConfig.{name} must be a positive integer, got {value!r}")
-        for name in ("seed", "checkpoint_every"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"PretrainConfig.{name} must be an integer >= 0, got {value!r}")
-        for name in ("c0", "reward_scale", "cost_scale"):
-            value = getattr(self, name)
-            if not value > 0:
-                raise ValueError(f"PretrainConfig.{name} must be positive, got {value!r}")
-        for name in ("relabel", "scale_actions", "standardize_obs"):
-            if not isinstance(getattr(self, name), bool):
-                raise ValueError(f"PretrainConfig.{name} must be True or False, "
-                                 f"got {getattr(self, name)!r}")
+        check.integers(self, "steps", "batch_size", "chunk", "max_to_keep")
+        check.integers(self, "seed", "checkpoint_every", minimum=0)
+        check.positive(self, "c0", "reward_scale", "cost_scale")
+        check.booleans(self, "relabel", "scale_actions", "standardize_obs")
 
     def replace(self, **changes: Any) -> PretrainConfig:
         """A copy with `changes` applied (validated again)."""

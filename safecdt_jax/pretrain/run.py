@@ -66,7 +66,7 @@ class PretrainResult(NamedTuple):
 def dataset_record(path: str | os.PathLike, data: Dataset) -> dict[str, Any]:
     """Summary of the training data for the checkpoint (raw, unscaled units; real episodes).
 
-    `reference_return` is the 95th percentile of the episode returns (R_ref of METHOD.md, the
+    `reference_return` is the 95th percentile of the episode returns (R_ref of docs/METHOD.md, the
     deployment's return unit); `cost_median` the median episode cost. `fingerprint` is a
     BLAKE2b digest of the episode arrays, so a re-collected file is told apart from the old one
     whatever its path or compression.

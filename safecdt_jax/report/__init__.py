@@ -4,8 +4,10 @@ from safecdt_jax.report.figures import plot_deployment
 from safecdt_jax.report.tables import (
     METRIC_NAMES,
     markdown_table,
+    results_table,
     seed_summaries,
     summarize_runs,
 )
 
-__all__ = ["METRIC_NAMES", "markdown_table", "plot_deployment", "seed_summaries", "summarize_runs"]
+__all__ = ["METRIC_NAMES", "markdown_table", "plot_deployment", "results_table", "seed_summaries",
+           "summarize_runs"]

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-# Per-episode metric arrays of a deployment, each [seeds, episodes] (METHOD.md section 6).
+# Per-episode metric arrays of a deployment, each [seeds, episodes] (docs/METHOD.md section 6).
 METRIC_NAMES = ("return", "cost", "violation", "ctg_target", "rtg_target", "lambda", "a_c", "a_r")
 
 
@@ -34,16 +34,19 @@ def summarize_runs(metrics: Mapping[str, Any]) -> dict[str, float]:
     return out
 
 
-def markdown_table(rows: Sequence[Mapping[str, Any]]) -> str:
+def markdown_table(headers: Sequence[str], rows: Sequence[Sequence[Any]]) -> str:
+    """A GitHub markdown table: one header row, then one row per entry (cells via `str`)."""
+    lines = ["| " + " | ".join(headers) + " |", "|" + "---|" * len(headers)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return "\n".join(lines)
+
+
+def results_table(rows: Sequence[Mapping[str, Any]]) -> str:
     """The paper's Table 1 layout: one row per run with Reward, Cost, VR (%) as mean +- std.
 
     Each row needs `label` and the keys of `summarize_runs`.
     """
-    lines = ["| run | Reward | Cost | VR (%) | seeds |", "|---|---|---|---|---|"]
-    for r in rows:
-        lines.append(
-            f"| {r['label']} | {r['mean_return_mean']:.2f}±{r['mean_return_std']:.2f} "
-            f"| {r['mean_cost_mean']:.2f}±{r['mean_cost_std']:.2f} "
-            f"| {r['vr_mean']:.1f}±{r['vr_std']:.1f} | {r['seeds']} |"
-        )
-    return "\n".join(lines) + "\n"
+    cells = [[r["label"], f"{r['mean_return_mean']:.2f}±{r['mean_return_std']:.2f}",
+              f"{r['mean_cost_mean']:.2f}±{r['mean_cost_std']:.2f}",
+              f"{r['vr_mean']:.1f}±{r['vr_std']:.1f}", r["seeds"]] for r in rows]
+    return markdown_table(["run", "Reward", "Cost", "VR (%)", "seeds"], cells) + "\n"

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from safecdt_jax.analysis.bc import BCConfig, bc_action, evaluate_bc, fit_bc, select_transitions
 from safecdt_jax.cli import app
 from safecdt_jax.data import make_dataset, write_dataset
 from safecdt_jax.data.collect import collect, write_collected
-from safecdt_jax.pretrain.bc import BCConfig, bc_action, evaluate_bc, fit_bc, select_transitions
 
 CFG = BCConfig(hidden=32, steps=600, batch=64, lr=3e-3, chunk=200)
 

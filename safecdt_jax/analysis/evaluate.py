@@ -6,9 +6,9 @@ how well its cost follows the cost target.
     summary = summarize_evaluation("PointCircle1", res, data_median=median)
     print(evaluation_table(summary))   # per-target means, Spearman, the data's median cost
 
-Issue 4's check of a pretrained CDT reads off the summary: the Spearman rank correlation of the
-mean episode cost with the cost target at one return target (>= 0.8 wanted), and the mean cost
-at a low target against the data's median episode cost.
+The cost-following check of a pretrained CDT (docs/CDT_FINDINGS.md) reads off the summary: the
+Spearman rank correlation of the mean episode cost with the cost target at one return target
+(>= 0.8 wanted), and the mean cost at a low target against the data's median episode cost.
 """
 
 from __future__ import annotations

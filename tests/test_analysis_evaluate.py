@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from safecdt_jax.cli import app
-from safecdt_jax.data import episode_costs, load_dataset
-from safecdt_jax.deploy.evaluate import (
+from safecdt_jax.analysis.evaluate import (
     evaluate_policy,
     evaluation_table,
     parse_targets,
     spearman,
     summarize_evaluation,
 )
+from safecdt_jax.cli import app
+from safecdt_jax.data import episode_costs, load_dataset
 
 TASK = "PointCircle1"
 
