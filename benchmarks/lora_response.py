@@ -50,7 +50,6 @@ def response(ckpt: str, target: str, variants: list[str], seeds: int, budget: fl
     r_t = jnp.full_like(c_t, return_ratio * r_ref)
     evaluate = jax.jit(lambda p: evaluate_targets(
         jax.random.PRNGKey(11), env, env_params, p, policy.cfg, r_t, c_t, episodes,
-        reward_scale=cfg.reward_scale, cost_scale=cfg.cost_scale,
         clip_ctg=cfg.clip_ctg).costs.mean(1))
     keys = seed_keys(0, seeds)
     adapters = init_adapters(keys, policy.params, policy.cfg)

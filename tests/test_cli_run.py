@@ -57,8 +57,8 @@ def test_run_bad_input_is_one_clear_line(cache, flag, value, message):
 
 
 def test_deployment_uses_the_checkpoints_token_scales(tmp_path):
-    # A model only understands the RTG / CTG token scales it was trained with: the deployment
-    # takes them from the checkpoint, whatever its own config says.
+    # A model only understands the RTG / CTG token scales it was trained with: they are part of
+    # its config, saved with the checkpoint, and the deployment has no scales of its own.
     import jax
 
     from safecdt_jax.data.collect import collect, write_collected
@@ -68,8 +68,26 @@ def test_deployment_uses_the_checkpoints_token_scales(tmp_path):
 
     data = write_collected(tmp_path / "PointCircle1.hdf5",
                            collect(jax.random.PRNGKey(0), "PointCircle1", 4, horizon=20))
-    cfg = default_pretrain("tiny", steps=2, chunk=2, reward_scale=0.2, cost_scale=0.25)
-    ckpt = pretrain(data, tmp_path / "ckpt", preset="tiny", config=cfg, progress=False).path
+    cfg = default_pretrain("tiny", steps=2, chunk=2)
+    ckpt = pretrain(data, tmp_path / "ckpt", preset="tiny", config=cfg, progress=False,
+                    model_overrides={"reward_scale": 0.2, "cost_scale": 0.25}).path
     res = run_deployment(ckpt, "PointCircle2", ["zero_shot"], [30.0], 1,
                          cfg=DeployConfig(episodes=1, horizon=5), progress=False)
-    assert (res["deploy_config"]["reward_scale"], res["deploy_config"]["cost_scale"]) == (0.2, 0.25)
+    assert (res["model_config"]["reward_scale"], res["model_config"]["cost_scale"]) == (0.2, 0.25)
+    assert "cost_scale" not in res["deploy_config"]
+
+
+def test_old_checkpoints_keep_their_token_scales():
+    """Checkpoints written before the encoding moved into CDTConfig kept the scales in the run
+    config: they are read back into the model config, and the cpu defaults stay as trained."""
+    from safecdt_jax.pretrain.checkpoint import config_diff, configs_from_meta, migrate_meta
+
+    old = {"model": {"obs_dim": 28, "act_dim": 2, "episode_len": 500, "cost_offset": 5.0},
+           "optim": {}, "pretrain": {"steps": 3, "reward_scale": 0.1, "cost_scale": 0.1}}
+    model, _, run = configs_from_meta(old)
+    assert (model.reward_scale, model.cost_scale, model.cost_offset) == (0.1, 0.1, 5.0)
+    assert not hasattr(run, "cost_scale")
+    assert migrate_meta(old)["model"]["cost_scale"] == 0.1 and old["pretrain"]["cost_scale"]
+    new = {"model": {**old["model"], "reward_scale": 0.1, "cost_scale": 0.1}, "optim": {},
+           "pretrain": {"steps": 3}}
+    assert config_diff(old, new) == []  # an old cached checkpoint is reused, not retrained

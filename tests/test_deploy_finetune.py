@@ -100,7 +100,7 @@ def test_empty_buffer_is_a_no_op(base, lora):
 
 def test_loss_decreases_on_a_fixed_buffer(base, buf, lora):
     fixed = sample_windows(jax.random.key(9), buf, 64, MCFG.seq_len, None,
-                           CFG.reward_scale, CFG.cost_scale)
+                           MCFG.reward_scale, MCFG.cost_scale)
     ones = jnp.ones(64)
     losses = [float(loss_fn(lora, base, MCFG, fixed, ones))]
     current, opt, variant = lora, init_adapter_opt(lora, CFG), make_variant("naive_lora")

@@ -42,8 +42,10 @@ def test_defaults_are_osrl():
 
 
 def test_preset_overrides_and_replace():
-    # cpu reads OSRL's cost transform scaled by 0.1 (pretraining's cost_scale 0.1): 5 - 0.1 CTG.
-    assert CDTConfig.preset("cpu", **CAR_GOAL).cost_offset == 5.0
+    # cpu reads OSRL's cost token divided by 10: 5 - 0.1 CTG; osrl reads 50 - CTG.
+    cpu, osrl = CDTConfig.preset("cpu", **CAR_GOAL), CDTConfig.preset("osrl", **CAR_GOAL)
+    assert (cpu.reward_scale, cpu.cost_scale, cpu.cost_offset) == (0.1, 0.1, 5.0)
+    assert (osrl.reward_scale, osrl.cost_scale, osrl.cost_offset) == (0.1, 1.0, 50.0)
     c = CDTConfig.preset("cpu", **CAR_GOAL, seq_len=20)
     assert c.seq_len == 20 and c.embed_dim == 64
     assert c.replace(num_layers=5).num_layers == 5

@@ -31,7 +31,6 @@ from safecdt_jax.pretrain import (
     run_key,
     stream_key,
 )
-from safecdt_jax.pretrain.checkpoint import token_scales
 from safecdt_jax.pretrain.normalize import IONorm, fold_io_norm
 
 TASK = "Synthetic"
@@ -77,12 +76,12 @@ def _assert_trees_equal(a, b):
 
 def test_config_defaults_and_validation():
     cpu = default_pretrain("cpu")
-    assert cpu.relabel and (cpu.c0, cpu.reward_scale, cpu.cost_scale) == (70.0, 0.1, 0.1)
+    assert cpu.relabel and (cpu.c0, cpu.steps, cpu.batch_size) == (70.0, 10_000, 32)
     osrl = default_pretrain("osrl")
-    assert (osrl.batch_size, osrl.reward_scale, osrl.cost_scale) == (2048, 0.1, 1.0)
+    assert (osrl.batch_size, osrl.steps) == (2048, 100_000)
     assert default_pretrain("cpu", steps=7).steps == 7
     bad = [dict(steps=0), dict(batch_size=-1), dict(chunk=1.5), dict(seed=-1), dict(c0=0.0),
-           dict(reward_scale=-0.1), dict(checkpoint_every=-5), dict(relabel=1),
+           dict(max_to_keep=0), dict(checkpoint_every=-5), dict(relabel=1),
            dict(scale_actions="yes"), dict(standardize_obs=0)]
     for kwargs in bad:
         with pytest.raises(ValueError) as err:
@@ -255,12 +254,13 @@ def test_cli_cost_token_options_reach_the_checkpoint(data_file, tmp_path):
     result = runner.invoke(app, [*args, "--cost-scale", "0.025", "--cost-offset", "1"])
     assert result.exit_code == 0, result.output
     meta = load_checkpoint(out).meta
-    assert meta["pretrain"]["cost_scale"] == 0.025 and meta["model"]["cost_offset"] == 1.0
+    assert meta["model"]["cost_scale"] == 0.025 and meta["model"]["cost_offset"] == 1.0
     # The summary line ends on the mean of the last chunks (here all 3), not on the last one.
     loss = meta["history"]["loss"]
     assert len(loss) == 3 and f"{sum(loss) / 3:.3f}" != f"{loss[-1]:.3f}"
     assert f"-> {sum(loss) / 3:.3f}, action" in result.output
     assert "(first chunk -> mean of the last 3)" in result.output
-    assert token_scales(meta) == (0.1, 0.025)  # what evaluate and deploy will use
+    model = configs_from_meta(meta)[0]  # what evaluate and deploy will use
+    assert (model.reward_scale, model.cost_scale) == (0.1, 0.025)
     bad = runner.invoke(app, [*args, "--overwrite", "--cost-scale", "0"])
-    assert bad.exit_code == 1 and "error: PretrainConfig.cost_scale" in bad.output
+    assert bad.exit_code == 1 and "error: CDTConfig.cost_scale" in bad.output

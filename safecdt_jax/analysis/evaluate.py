@@ -45,22 +45,20 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     """Episode returns and costs [n_targets, episodes] of checkpoint `ckpt` in `task`.
 
     Every target runs on the same `episodes` layouts (keys from `seed`), in one jitted call,
-    with the checkpoint's own token scales. `horizon` cuts every episode at that many steps
-    (default: the task's time limit). Also returns the targets as `target_return` and
-    `target_cost` [n_targets] (raw units).
+    reading the tokens as the checkpoint's model config encodes them. `horizon` cuts every
+    episode at that many steps (default: the task's time limit). Also returns the targets as
+    `target_return` and `target_cost` [n_targets] (raw units).
     """
     import envs
     from safecdt_jax.deploy.rollout import evaluate_targets
-    from safecdt_jax.pretrain.checkpoint import load_policy, token_scales
+    from safecdt_jax.pretrain.checkpoint import load_policy
 
     env, params = envs.make(task)
     policy = load_policy(ckpt, task=task)
-    reward_scale, cost_scale = token_scales(policy.meta)
     rets = np.array([t[0] for t in targets])  # float64: reported as given
     costs = np.array([t[1] for t in targets])
     fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, policy.cfg, r, c,
-                                                  episodes, reward_scale=reward_scale,
-                                                  cost_scale=cost_scale, horizon=horizon))
+                                                  episodes, horizon=horizon))
     res = jax.device_get(fn(jax.random.PRNGKey(seed), rets.astype(np.float32),
                             costs.astype(np.float32)))
     return {"target_return": rets, "target_cost": costs, "returns": np.asarray(res.returns),

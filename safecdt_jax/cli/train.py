@@ -53,11 +53,11 @@ def pretrain(
 
     overrides = {"seed": seed, "scale_actions": scale_actions,
                  "standardize_obs": standardize_obs}
-    for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk),
-                        ("cost_scale", cost_scale)):
+    for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk)):
         if value is not None:
             overrides[name] = value
-    model = {} if cost_offset is None else {"cost_offset": cost_offset}
+    model = {name: value for name, value in (("cost_scale", cost_scale),
+                                             ("cost_offset", cost_offset)) if value is not None}
     try:
         cfg = pt.default_pretrain(preset, **overrides)
         result = pt.pretrain(data, out, preset=preset, config=cfg, task=task, resume=resume,

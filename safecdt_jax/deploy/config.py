@@ -69,10 +69,6 @@ class DeployConfig:
             silent; default False (deterministic forward pass): with 10 steps of 32 sequences per
             episode, dropout noise would dominate the small gradient signal, and the adapters are
             trained for exactly the forward pass the deployment uses (evaluation mode).
-        reward_scale: the RTG token is RTG * reward_scale (0.1, OSRL's). Must be the scale the
-            model was pretrained with: `run_deployment` sets it from the checkpoint.
-        cost_scale: the CTG token is CTG * cost_scale (1.0, OSRL's); set from the checkpoint
-            like `reward_scale` (the `cpu` preset trains with 0.1).
         clip_ctg: clip the rollout's cost-to-go at 0 once the budget is spent (True); False is
             OSRL's rule (it may go negative, which no training window contains).
     """
@@ -106,16 +102,13 @@ class DeployConfig:
     lora_batch: int = 32
     lora_lr: float = 1e-4
     lora_dropout: bool = False
-    reward_scale: float = 0.1
-    cost_scale: float = 1.0
     clip_ctg: bool = True
 
     def __post_init__(self) -> None:
         check.integers(self, "episodes", "stage_len", "window", "lora_steps", "lora_batch")
         check.integers(self, "horizon", optional=True)
         check.integers(self, "lambda_warmup", minimum=0)
-        check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr",
-                       "reward_scale", "cost_scale")
+        check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr")
         check.booleans(self, "lora_dropout", "clip_ctg")
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")

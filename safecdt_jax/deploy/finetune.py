@@ -78,7 +78,7 @@ def lora_finetune(
         base_params: the frozen pretrained CDT params (no gradient flows to them).
         model_cfg: the CDT config (static); windows have its `seq_len` steps.
         buffer: the deployment's episodes (raw rewards/costs); windows are drawn uniformly over
-            its valid positions and relabelled with `cfg.reward_scale` / `cfg.cost_scale`.
+            its valid positions and relabelled with the model's `reward_scale` / `cost_scale`.
         lam: the reweighting multiplier (from `lambda_update`).
         budget: the cost budget B (raw cost units).
         variant: `variant.lora` off (or an empty buffer) returns `lora` and `opt_state`
@@ -97,10 +97,10 @@ def lora_finetune(
         k_win, k_drop = jax.random.split(k)
         win = sample_windows(
             k_win, buffer, cfg.lora_batch, model_cfg.seq_len, None,
-            cfg.reward_scale, cfg.cost_scale,
+            model_cfg.reward_scale, model_cfg.cost_scale,
         )
         valid = win.mask[:, 0] > 0
-        ctg_first = win.costs_to_go[:, 0] / cfg.cost_scale  # back to raw cost units
+        ctg_first = win.costs_to_go[:, 0] / model_cfg.cost_scale  # back to raw cost units
         weights = replay_weights(ctg_first, valid, lam, budget, cfg, enabled=variant.reweight)
         drop_key = k_drop if cfg.lora_dropout else None
         loss, grads = jax.value_and_grad(lora_loss)(

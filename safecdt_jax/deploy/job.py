@@ -64,19 +64,16 @@ def parse_list(text: str, kind: Callable[[str], Any], what: str) -> list:
 
 def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None):
     """What deploying checkpoint `ckpt` into task `target` needs: `(env, env_params, policy,
-    cfg, r_ref)`. `cfg` (default `DeployConfig()`) gets the checkpoint's token scales
-    (`token_scales`), since the model only understands the ones it was trained with; `r_ref` is
-    the checkpoint's reference return (raw units). Raises CheckpointError if the model does not
-    fit the task."""
+    cfg, r_ref)`. `cfg` defaults to `DeployConfig()`; the token encoding comes with the policy's
+    model config, as it was trained. `r_ref` is the checkpoint's reference return (raw units).
+    Raises CheckpointError if the model does not fit the task."""
     import envs
     from safecdt_jax.deploy.config import DeployConfig
-    from safecdt_jax.pretrain.checkpoint import load_policy, token_scales
+    from safecdt_jax.pretrain.checkpoint import load_policy
 
     env, env_params = envs.make(target)
     policy = load_policy(ckpt, task=target)
-    reward_scale, cost_scale = token_scales(policy.meta)
-    cfg = dataclasses.replace(DeployConfig() if cfg is None else cfg,
-                              reward_scale=reward_scale, cost_scale=cost_scale)
+    cfg = DeployConfig() if cfg is None else cfg
     return env, env_params, policy, cfg, float(policy.meta["dataset"]["reference_return"])
 
 

@@ -133,7 +133,6 @@ def deploy_episodes(
         ctg, rtg = targets(cr, rr, budget, spec.reference_return)
         params = merge_lora(base_params, carry.lora, model_cfg)
         ep = cdt_episode(k_env, env, env_params, params, model_cfg, rtg, ctg,
-                         reward_scale=cfg.reward_scale, cost_scale=cfg.cost_scale,
                          clip_ctg=cfg.clip_ctg, horizon=cfg.horizon)
         buffer = buffer_add(carry.buffer, ep, ep["length"])
         h = carry.history

@@ -5,8 +5,8 @@ steps sit at its right end with `mask` 1 and padding at its left with `mask` 0, 
 causal, key-masked attention gives the same action as running it on the unpadded prefix
 (`tests/test_deploy_rollout.py` checks this). After each step the targets are decremented by what
 was realized: `rtg -= r_t`, `ctg -= c_t` (docs/METHOD.md section 1), in raw units; the model
-reads the return-to-go times `reward_scale` and the cost-to-go times `cost_scale`, as in
-pretraining.
+reads the return-to-go times `cfg.reward_scale` and the cost-to-go times `cfg.cost_scale`, as in
+pretraining (the encoding belongs to the model's config).
 """
 
 from __future__ import annotations
@@ -86,8 +86,6 @@ def cdt_episode(
     target_return,
     target_cost,
     *,
-    reward_scale: float = 0.1,
-    cost_scale: float = 1.0,
     clip_ctg: bool = True,
     horizon: int | None = None,
 ) -> dict[str, jax.Array]:
@@ -97,10 +95,9 @@ def cdt_episode(
         key: PRNG key of the episode (layout and goal re-sampling).
         env, env_params: the task and its level/dynamics data.
         params: CDT parameters (base, or base merged with LoRA adapters).
-        cfg: the model's config (static).
+        cfg: the model's config (static), token encoding included.
         target_return: initial return-to-go, raw return units (traced scalar ok).
         target_cost: initial cost-to-go, raw cost units = cost steps (traced scalar ok).
-        reward_scale, cost_scale: the pretraining scales of the RTG / CTG tokens.
         clip_ctg: clip the cost-to-go at 0 once the budget is spent (default, docs/METHOD.md
             section 1); False keeps OSRL's rule of letting it go negative.
         horizon: steps T to run (static); None = the env's time limit. A shorter horizon cuts
@@ -115,7 +112,7 @@ def cdt_episode(
 
     def body(carry, t):
         state, ctx, rtg, ctg, alive = carry
-        ctx = context_push(ctx, state.obs, rtg * reward_scale, ctg * cost_scale, t)
+        ctx = context_push(ctx, state.obs, rtg * cfg.reward_scale, ctg * cfg.cost_scale, t)
         action = context_action(params, cfg, ctx)
         ctx = ctx._replace(actions=ctx.actions.at[-1].set(action))
         nxt = env.step(state, action, env_params)

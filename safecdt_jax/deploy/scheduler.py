@@ -189,7 +189,7 @@ def targets(cr, rr, budget, reference_return):
     """Raw-unit targets `(ctg, rtg) = (CR * B, RR * R_ref)` for the rollout's initial tokens.
 
     `budget` B in cost units, `reference_return` R_ref (95th percentile of the source data set's
-    episode returns) in return units; the rollout applies reward_scale / cost_scale itself.
+    episode returns) in return units; the rollout applies the model's token scales itself.
     """
     ctg = jnp.asarray(cr, jnp.float32) * budget
     rtg = jnp.asarray(rr, jnp.float32) * reference_return

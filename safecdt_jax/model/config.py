@@ -19,9 +19,15 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # Default demo model (175,054 parameters for CarGoal, 138,926 for CarCircle): its default
     # pretraining, 10,000 updates at batch 32 (pretrain.default_pretrain), takes 2.5-5 minutes on
     # a 2-core CPU at 14-24 ms per update; one batch-15 inference step takes ~1.5 ms.
-    # Its cost transform reads `5 - CTG * 0.1` (pretraining's `cost_scale` is 0.1 for this
-    # preset), OSRL's `50 - CTG` divided by 10: see `pretrain.config` for why.
-    "cpu": dict(embed_dim=64, num_layers=2, num_heads=4, seq_len=10, cost_offset=5.0),
+    # Its cost token reads `5 - 0.1 CTG`, OSRL's `50 - CTG` divided by 10. The embedding
+    # LayerNorm normalises each token on its own: an input of size ~50 times a N(0, 0.02) weight
+    # swamps the bias and the timestep embedding, and the normalised token keeps little more
+    # than the sign of `50 - CTG`. OSRL's 100,000 updates of 2048 windows learn their way around
+    # this; 10,000 of 32 did not. On CarCircle1 (scripted collector v4, cost targets 10/20/40/80
+    # at the reference return, 20 episodes each) the cost rose with the target and stayed below
+    # the data median at target 20 for 3 of 4 pretraining seeds at 0.1, 1 of 3 at scale 1.
+    "cpu": dict(embed_dim=64, num_layers=2, num_heads=4, seq_len=10, cost_scale=0.1,
+                cost_offset=5.0),
     # OSRL's default CDT: 744,910 parameters for CarGoal (obs 72, act 2, episode 1000).
     "osrl": dict(embed_dim=128, num_layers=3, num_heads=8, seq_len=10),
     # The Safe-CDT paper's model: about 3.5M parameters, LoRA rank 16 on q/v -> 65,536 adapters.
@@ -48,8 +54,13 @@ class CDTConfig:
         embedding_dropout: dropout on the token sequence after the embedding LayerNorm.
         attention_dropout: dropout on the attention probabilities.
         residual_dropout: dropout on the attention and MLP outputs before each residual add.
-        cost_transform: if True the cost-to-go input is replaced by `cost_offset - CTG` before
-            its embedding (OSRL's default, with offset 50).
+        reward_scale: the return-to-go token is the raw return-to-go times this (OSRL: 0.1).
+        cost_scale: the cost-to-go input is the raw cost-to-go (cost steps) times this (OSRL:
+            1). With `cost_offset` and `cost_transform` this is the whole token encoding, saved
+            with every checkpoint, so pretraining, evaluation, deployment and finetuning read
+            the tokens one way (docs/METHOD.md section 0).
+        cost_transform: if True the scaled cost-to-go input is replaced by `cost_offset - input`
+            before its embedding (OSRL's default, with offset 50).
         cost_offset: the constant of the cost transform.
         max_action: half-width of the action box; evaluation actions are clipped to it.
         use_state_head: build the next-state head (OSRL always builds it, so its parameters are
@@ -73,6 +84,8 @@ class CDTConfig:
     embedding_dropout: float = 0.1
     attention_dropout: float = 0.1
     residual_dropout: float = 0.1
+    reward_scale: float = 0.1
+    cost_scale: float = 1.0
     cost_transform: bool = True
     cost_offset: float = 50.0
     max_action: float = 1.0
@@ -94,7 +107,8 @@ class CDTConfig:
             )
         check.unit_interval(self, "embedding_dropout", "attention_dropout", "residual_dropout",
                             open_right=True)
-        check.positive(self, "max_action", "lora_alpha", "layernorm_eps")
+        check.positive(self, "max_action", "lora_alpha", "layernorm_eps", "reward_scale",
+                       "cost_scale")
         if self.cost_loss_weight < 0 or self.state_loss_weight < 0:
             raise ValueError("CDTConfig loss weights must be non-negative")
         if self.state_loss_weight > 0 and not self.use_state_head:

@@ -32,6 +32,18 @@ RESUMABLE_FIELDS = frozenset({"pretrain.steps", "pretrain.checkpoint_every",
 # Run-config fields added after checkpoints were first written, with the value those older
 # checkpoints were trained with; a meta without them reads as these.
 LEGACY_PRETRAIN = {"scale_actions": False, "standardize_obs": False}
+# The token scales moved from the run config to the model config; older metas keep them there.
+TOKEN_FIELDS = ("reward_scale", "cost_scale")
+
+
+def migrate_meta(meta: dict[str, Any]) -> dict[str, Any]:
+    """`meta` in today's layout: token scales saved under `pretrain` by older versions move to
+    `model` (where `CDTConfig` keeps them), so an old checkpoint reads its tokens as trained."""
+    model, pretrain = dict(meta.get("model", {})), dict(meta.get("pretrain", {}))
+    for name in TOKEN_FIELDS:
+        if name in pretrain:
+            model.setdefault(name, pretrain.pop(name))
+    return {**meta, "model": model, "pretrain": pretrain}
 
 
 class CheckpointError(ValueError):
@@ -118,22 +130,15 @@ def read_meta(path: str | os.PathLike, step: int | None = None) -> dict[str, Any
         raise CheckpointError(
             f"{os.fspath(path)}: checkpoint format {meta.get('format')!r}, this code reads {FORMAT}"
         )
-    return meta
+    return migrate_meta(meta)
 
 
 def configs_from_meta(meta: dict[str, Any]) -> tuple[CDTConfig, OptimConfig, PretrainConfig]:
     """The model, optimiser and run configs recorded in a checkpoint's metadata."""
+    meta = migrate_meta(meta)
     model = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["model"].items()}
     pretrain = {**LEGACY_PRETRAIN, **meta["pretrain"]}
     return CDTConfig(**model), OptimConfig(**meta["optim"]), PretrainConfig(**pretrain)
-
-
-def token_scales(meta: dict[str, Any]) -> tuple[float, float]:
-    """(reward_scale, cost_scale) the checkpoint was trained with: RTG / CTG tokens are raw
-    return- / cost-to-go times these. A rollout must use the same ones, so deployment and
-    evaluation read them from here rather than from their own configs."""
-    _, _, cfg = configs_from_meta(meta)
-    return cfg.reward_scale, cfg.cost_scale
 
 
 def restore_state(
@@ -222,6 +227,7 @@ def config_diff(saved: dict[str, Any], requested: dict[str, Any]) -> list[str]:
     run-config field missing from an older meta reads as its `LEGACY_PRETRAIN` value.
     """
     diffs = []
+    saved, requested = migrate_meta(saved), migrate_meta(requested)
     for section in ("model", "optim", "pretrain"):
         a, b = saved.get(section, {}), requested.get(section, {})
         if section == "pretrain":

@@ -28,8 +28,6 @@ class PretrainConfig:
             safer episodes) before sampling. On by default, as in OSRL (`augment_percent=0.2`):
             it teaches the model to stay inside a cost target when the return target is
             unreachable, which is exactly how deployment conditions it.
-        reward_scale: return-to-go tokens are raw RTG times this (OSRL: 0.1).
-        cost_scale: cost-to-go tokens are raw CTG times this (OSRL: 1).
         scale_actions: train on actions divided by the data's largest |action| per dimension,
             then fold the scale into the saved weights (`safecdt_jax.pretrain.normalize`), which
             emit raw actions either way. Off by default, as in OSRL, whose agents' actions fill
@@ -48,8 +46,6 @@ class PretrainConfig:
     seed: int = 0
     c0: float = 70.0
     relabel: bool = True
-    reward_scale: float = 0.1
-    cost_scale: float = 1.0
     scale_actions: bool = False
     standardize_obs: bool = False
     checkpoint_every: int = 2000
@@ -58,7 +54,7 @@ class PretrainConfig:
     def __post_init__(self) -> None:
         check.integers(self, "steps", "batch_size", "chunk", "max_to_keep")
         check.integers(self, "seed", "checkpoint_every", minimum=0)
-        check.positive(self, "c0", "reward_scale", "cost_scale")
+        check.positive(self, "c0")
         check.booleans(self, "relabel", "scale_actions", "standardize_obs")
 
     def replace(self, **changes: Any) -> PretrainConfig:
@@ -71,19 +67,11 @@ class PretrainConfig:
 # L2), and at equal wall time batch 32 reached a better log-likelihood than 64 on collected
 # CarGoal1 data; so pretraining takes ~2.5 min on an idle box, ~4-5 min when the cores are shared
 # (benchmarks/train_throughput.py). `osrl` and `paper` use OSRL's full schedule, meant for an
-# accelerator.
-#
-# `cpu` also scales the cost-to-go token by 0.1, like the return token (its model's cost
-# transform is `5 - x`, so the token is OSRL's `50 - CTG` divided by 10). The embedding
-# LayerNorm normalises each token on its own: an input of size ~50 times a N(0, 0.02) weight
-# swamps the bias and the timestep embedding, and the normalised token keeps little more than
-# the sign of `50 - CTG`. OSRL's 100,000 updates of 2048 windows learn their way around this;
-# 10,000 of 32 did not. On CarCircle1 (collector v4, cost targets 10/20/40/80 at the reference
-# return, 20 episodes each) the cost rose with the target and stayed below the data median at
-# target 20 for 3 of 4 pretraining seeds at 0.1, and for 1 of 3 at scale 1.
+# accelerator. The token encoding (RTG and CTG scales, the cost offset) belongs to the model:
+# `CDTConfig`.
 _DEFAULTS: dict[str, dict[str, Any]] = {
     "tiny": dict(steps=200, batch_size=16),
-    "cpu": dict(steps=10_000, batch_size=32, cost_scale=0.1),
+    "cpu": dict(steps=10_000, batch_size=32),
     "osrl": dict(steps=100_000, batch_size=2048),
     "paper": dict(steps=100_000, batch_size=2048),
 }

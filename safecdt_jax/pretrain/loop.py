@@ -83,7 +83,7 @@ def make_update(
         k_batch, k_dropout = jax.random.split(jax.random.fold_in(key, state.step))
         windows = sample_windows(
             k_batch, data, cfg.batch_size, cdt_cfg.seq_len, weights,
-            reward_scale=cfg.reward_scale, cost_scale=cfg.cost_scale,
+            reward_scale=cdt_cfg.reward_scale, cost_scale=cdt_cfg.cost_scale,
         )
         return train_step(state, windows._asdict(), k_dropout)
 
