@@ -1,12 +1,11 @@
-"""The trimmed evaluation forward pass equals the full model's newest action."""
+"""The trimmed evaluation pass (`newest_only`) equals the full model's newest action."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safecdt_jax.model import CDTConfig, init_cdt, last_action
-from safecdt_jax.model.infer import newest_action
+from safecdt_jax.model import CDTConfig, init_cdt, last_action, newest_action
 
 
 @pytest.mark.parametrize("preset,layers", [("tiny", 1), ("tiny", 3), ("cpu", 2)])

@@ -9,8 +9,7 @@ from typer.testing import CliRunner
 from safecdt_jax.cli import app
 from safecdt_jax.data import load_dataset, make_dataset, write_dataset
 from safecdt_jax.model import CDTConfig, OptimConfig, init_cdt
-from safecdt_jax.model.cdt import apply_cdt, dummy_batch
-from safecdt_jax.model.infer import newest_action
+from safecdt_jax.model.cdt import apply_cdt, dummy_batch, newest_action
 from safecdt_jax.pretrain import (
     PretrainConfig,
     config_diff,

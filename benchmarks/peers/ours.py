@@ -25,7 +25,7 @@ from safecdt_jax.model import (
     init_train_state,
     last_action,
 )
-from safecdt_jax.model.infer import newest_action
+from safecdt_jax.model.cdt import newest_action
 from safecdt_jax.pretrain import PretrainConfig, make_train_chunk, run_key
 
 PRESET = "osrl"

@@ -18,9 +18,8 @@ import jax.numpy as jnp
 
 from envs.env import SafetyEnv
 from envs.types import EnvParams
-from safecdt_jax.model.cdt import Params
+from safecdt_jax.model.cdt import Params, newest_action
 from safecdt_jax.model.config import CDTConfig
-from safecdt_jax.model.infer import newest_action
 
 
 class Context(NamedTuple):
@@ -71,7 +70,7 @@ def context_push(ctx: Context, obs, rtg, ctg, t) -> Context:
 def context_action(params: Params, cfg: CDTConfig, ctx: Context) -> jax.Array:
     """Deterministic action [act] for the newest step: the policy mean, clipped to the box.
 
-    Uses the trimmed evaluation pass (`model.infer.newest_action`), equal to `last_action`.
+    Uses the trimmed evaluation pass (`model.cdt.newest_action`), equal to `last_action`.
     """
     batch = {name: value[None] for name, value in ctx._asdict().items()}
     return newest_action(params, cfg, batch)[0]

@@ -8,6 +8,7 @@ from safecdt_jax.model.cdt import (
     dummy_batch,
     init_cdt,
     last_action,
+    newest_action,
     param_shapes,
 )
 from safecdt_jax.model.config import PRESET_NAMES, CDTConfig
@@ -59,6 +60,7 @@ __all__ = [
     "make_optimizer",
     "make_train_step",
     "merge_lora",
+    "newest_action",
     "param_shapes",
     "temperature_loss",
 ]
