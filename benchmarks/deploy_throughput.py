@@ -21,8 +21,8 @@ import time
 
 import jax
 
-import envs
 from benchmarks.common import machine, markdown_table, median, write_json
+from safecdt_jax import envs
 from safecdt_jax.deploy import (
     DeployConfig,
     deploy,

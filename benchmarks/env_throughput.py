@@ -11,9 +11,9 @@ import argparse
 
 import jax
 
-import envs
 from benchmarks.common import machine, markdown_table, median, time_call, write_json
-from envs.rollout import run_episode
+from safecdt_jax import envs
+from safecdt_jax.envs.rollout import run_episode
 
 # Native Safety-Gymnasium 1.0.0, one env on one core of this machine class, resets amortised.
 REFERENCE_WITH_RESETS = {"CarGoal1": 575, "PointCircle1": 425}

@@ -25,7 +25,7 @@ from benchmarks.common import machine, markdown_table, median, write_json
 
 
 def _programs(task: str, n_envs: int):
-    import envs
+    from safecdt_jax import envs
     from safecdt_jax.experts import CostSchedule, expert_preset, make_train
 
     cfg = expert_preset("cpu", task=task, num_envs=n_envs, minibatches=8, steps=1)

@@ -62,8 +62,7 @@ def ours_trace(task: str, episodes: int, steps: int, seed: int, actions=None) ->
     import jax
     import jax.numpy as jnp
 
-    import envs
-
+    from safecdt_jax import envs
     env, params = envs.make(task)
     script = None if actions is None else jnp.asarray(actions, jnp.float32)
 
@@ -158,8 +157,8 @@ def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed:
     """Per-episode return, cost and goals of one snapshot in our env."""
     import jax
 
-    import envs
-    from envs.rollout import run_episode
+    from safecdt_jax import envs
+    from safecdt_jax.envs.rollout import run_episode
     from safecdt_jax.experts.config import ExpertConfig
     from safecdt_jax.experts.export import load_snapshots
     from safecdt_jax.experts.networks import action_dist

@@ -10,14 +10,14 @@ physics substeps of 0.002 s each) under `jax.vmap`, compile time reported separa
                 with uniform random actions: planar MJX Point without contacts, vases as discs
                 pushed in JAX (`GoalTask._push_vases`), plus the rest of the env (hazards, goal,
                 reward, lidar observation).
-  mjx_contacts  the same planar Point (`envs.robots.POINT_XML`, contacts re-enabled) plus 10
-                free-joint box vases (half-size 0.1 m, density 0.001, resting at z = 0.1 - 4e-5)
-                and a floor plane. contype/conaffinity bits let robot geoms touch vases and vases
-                touch the floor, nothing else (no vase-vase, no robot-floor); condim 3, 4 solver
-                and line-search iterations, measured with the Newton and with the CG solver
-                (`--solver`). Per env step it computes the same cost signals as the env: any
-                robot-vase contact (penetrating `data._impl.contact` rows between a robot geom and
-                a vase) and any vase linear speed >= 1e-4 m/s.
+  mjx_contacts  the same planar Point (`safecdt_jax.envs.robots.POINT_XML`, contacts re-enabled)
+                plus 10 free-joint box vases (half-size 0.1 m, density 0.001, resting at z = 0.1 -
+                4e-5) and a floor plane. contype/conaffinity bits let robot geoms touch vases and
+                vases touch the floor, nothing else (no vase-vase, no robot-floor); condim 3, 4
+                solver and line-search iterations, measured with the Newton and with the CG solver
+                (`--solver`). Per env step it computes the same cost signals as the env: any robot-
+                vase contact (penetrating `data._impl.contact` rows between a robot geom and a vase)
+                and any vase linear speed >= 1e-4 m/s.
   mjx_no_vases  the plain planar Point (`POINT_XML`) stepped the same way: the floor of what an
                 MJX step of this robot costs.
 
@@ -56,10 +56,10 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-import envs
 from benchmarks.common import write_json
-from envs.goal import VASE_SPEED_COST
-from envs.robots import N_SUBSTEPS, POINT, POINT_XML
+from safecdt_jax import envs
+from safecdt_jax.envs.goal import VASE_SPEED_COST
+from safecdt_jax.envs.robots import N_SUBSTEPS, POINT, POINT_XML
 
 N_VASES = 10
 VASE_HALF = 0.1  # m: half-size of the vase cube, as Safety-Gymnasium's

@@ -4,7 +4,7 @@ import functools
 
 import jax
 
-import envs
+from safecdt_jax import envs
 from safecdt_jax.deploy import DeployConfig
 from safecdt_jax.model import CDTConfig, init_cdt
 

@@ -5,8 +5,8 @@ import functools
 import jax
 import jax.numpy as jnp
 
-import envs
-from envs.rollout import run_episode
+from safecdt_jax import envs
+from safecdt_jax.envs.rollout import run_episode
 
 
 @functools.cache

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-import envs
+from safecdt_jax import envs
 from safecdt_jax.cli import app
 from safecdt_jax.data import collect as collect_mod
 from safecdt_jax.data import load_dataset, make_dataset, write_dataset

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import envs
+from safecdt_jax import envs
 from safecdt_jax.deploy.rollout import cdt_episode, evaluate_targets
 from safecdt_jax.model import CDTConfig, apply_cdt, init_cdt
 

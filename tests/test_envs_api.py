@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from env_helpers import jitted
 
-import envs
+from safecdt_jax import envs
 
 SIZES = {"CarGoal": 72, "PointGoal": 60, "CarCircle": 40, "PointCircle": 28}
 
@@ -122,6 +122,6 @@ def test_import_prints_nothing():
     import subprocess
     import sys
 
-    out = subprocess.run([sys.executable, "-c", "import envs"], capture_output=True, text=True,
-                         check=True)
+    out = subprocess.run([sys.executable, "-c", "from safecdt_jax import envs"],
+                         capture_output=True, text=True, check=True)
     assert "warp" not in out.stdout.lower() and out.stdout == ""

@@ -8,12 +8,11 @@ import numpy as np
 import pytest
 from brax.envs.wrappers import training as brax_wrappers
 
-from envs.brax_env import BraxSafetyEnv
+from safecdt_jax.envs.brax_env import BraxSafetyEnv
 
 
 def test_adapter_steps_like_our_env_and_reports_cost():
-    import envs
-
+    from safecdt_jax import envs
     env = BraxSafetyEnv("PointGoal1")
     ours, params = envs.make("PointGoal1")
     state = jax.jit(env.reset)(jax.random.PRNGKey(0))

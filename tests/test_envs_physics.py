@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from env_helpers import hold
 
-import envs
-from envs.robots import CAR, POINT, planar_sensors
-from envs.rollout import uniform_policy
+from safecdt_jax import envs
+from safecdt_jax.envs.robots import CAR, POINT, planar_sensors
+from safecdt_jax.envs.rollout import uniform_policy
 
 SENSORS = """<sensor><accelerometer site="agent"/><velocimeter site="agent"/><gyro site="agent"/>
 <magnetometer site="agent"/></sensor></mujoco>"""

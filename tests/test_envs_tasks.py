@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from env_helpers import batch_episodes, jitted
 
-import envs
-from envs.geometry import pseudo_lidar
-from envs.goal import GOAL_KEEPOUT, HAZARD_KEEPOUT, VASE_KEEPOUT
+from safecdt_jax import envs
+from safecdt_jax.envs.geometry import pseudo_lidar
+from safecdt_jax.envs.goal import GOAL_KEEPOUT, HAZARD_KEEPOUT, VASE_KEEPOUT
 
 
 def _reset(name, key=0):

@@ -232,8 +232,7 @@ def test_expert_cli_bad_input_is_one_line(args, message):
 
 
 def test_recorded_car_action_executes_as_the_sampled_one():
-    import envs
-
+    from safecdt_jax import envs
     env, params = envs.make("CarCircle1")
     state = env.reset(jax.random.PRNGKey(3), params)
     sampled = jnp.array([0.7, -0.004])

@@ -13,11 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import envs
 from benchmarks.deploy_throughput import setup as deploy_setup
 from benchmarks.train_throughput import SIZES, synthetic_data
-from envs.rollout import run_episode
+from safecdt_jax import envs
 from safecdt_jax.deploy import cdt_episode, seed_keys, stack_specs, sweep
+from safecdt_jax.envs.rollout import run_episode
 from safecdt_jax.model import (
     CDTConfig,
     OptimConfig,

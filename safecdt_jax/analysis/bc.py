@@ -181,8 +181,8 @@ def evaluate_bc(key: jax.Array, task: str, policy: BCPolicy, episodes: int = 20
                 ) -> tuple[np.ndarray, np.ndarray]:
     """(returns [episodes], costs [episodes]) of the clone in `task`, full-length episodes, the
     mean action every step (no noise). One jitted, vmapped program."""
-    import envs
-    from envs.rollout import run_episode
+    from safecdt_jax import envs
+    from safecdt_jax.envs.rollout import run_episode
 
     env, params = envs.make(task)
     if policy.obs_mean.shape[0] != env.observation_size:

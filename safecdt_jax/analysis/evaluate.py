@@ -49,7 +49,7 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     episode at that many steps (default: the task's time limit). Also returns the targets as
     `target_return` and `target_cost` [n_targets] (raw units).
     """
-    import envs
+    from safecdt_jax import envs
     from safecdt_jax.deploy.rollout import evaluate_targets
     from safecdt_jax.pretrain.checkpoint import load_policy
 

@@ -30,8 +30,7 @@ def collect_cmd(
         help="Expert snapshot file (default: the committed one of TASK).")] = None,
 ) -> None:
     """Collects behaviour episodes of a task into a DSRL-format HDF5 file."""
-    import envs
-
+    from safecdt_jax import envs
     if task not in envs.NAMES:
         _fail(f"unknown task {task!r}; valid names: {', '.join(envs.NAMES)}")
     if episodes is not None and episodes < 1:

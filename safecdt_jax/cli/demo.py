@@ -17,8 +17,8 @@ def demo(
     import jax
     from tqdm import tqdm
 
-    import envs
-    from envs.rollout import run_episode
+    from safecdt_jax import envs
+    from safecdt_jax.envs.rollout import run_episode
 
     names = envs.NAMES if tasks == "all" else tuple(t.strip() for t in tasks.split(","))
     for name in names:

@@ -126,7 +126,7 @@ def bc(
     import jax
     import numpy as np
 
-    import envs
+    from safecdt_jax import envs
     from safecdt_jax.analysis.bc import BCConfig, cloned_episodes, cost_band, evaluate_bc, fit_bc
     from safecdt_jax.data.dsrl import load_dataset
     from safecdt_jax.data.windows import episode_costs, episode_returns

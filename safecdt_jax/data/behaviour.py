@@ -33,9 +33,9 @@ from collections.abc import Callable
 import jax
 import jax.numpy as jnp
 
-import envs
-from envs.goal import HAZARD_RADIUS, VASE_RADIUS
-from envs.types import EnvParams, State
+from safecdt_jax import envs
+from safecdt_jax.envs.goal import HAZARD_RADIUS, VASE_RADIUS
+from safecdt_jax.envs.types import EnvParams, State
 
 Knobs = dict[str, jax.Array]  # knob name -> scalar (one episode) or [n] (n episodes)
 # (knobs, state, spent: the episode's cost so far, key) -> action [2]

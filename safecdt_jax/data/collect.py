@@ -24,8 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import envs
-from safecdt_jax import paths
+from safecdt_jax import envs, paths
 from safecdt_jax.data.behaviour import Knobs, family, make_policy, sample_knobs
 from safecdt_jax.data.dataset import Attrs, Dataset
 from safecdt_jax.data.dsrl import write_dataset

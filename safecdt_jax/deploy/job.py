@@ -67,7 +67,7 @@ def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None):
     cfg, r_ref)`. `cfg` defaults to `DeployConfig()`; the token encoding comes with the policy's
     model config, as it was trained. `r_ref` is the checkpoint's reference return (raw units).
     Raises CheckpointError if the model does not fit the task."""
-    import envs
+    from safecdt_jax import envs
     from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.pretrain.checkpoint import load_policy
 

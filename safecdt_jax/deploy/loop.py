@@ -16,8 +16,6 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from envs.env import SafetyEnv
-from envs.types import EnvParams
 from safecdt_jax.data.buffer import buffer_add, buffer_init
 from safecdt_jax.deploy.config import DeployConfig, Variant
 from safecdt_jax.deploy.finetune import init_adapter_opt, lora_finetune
@@ -30,6 +28,8 @@ from safecdt_jax.deploy.scheduler import (
     targets,
     window_mask,
 )
+from safecdt_jax.envs.env import SafetyEnv
+from safecdt_jax.envs.types import EnvParams
 from safecdt_jax.model.cdt import Params
 from safecdt_jax.model.config import CDTConfig
 from safecdt_jax.model.lora import Lora, init_lora, merge_lora

@@ -16,8 +16,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from envs.env import SafetyEnv
-from envs.types import EnvParams
+from safecdt_jax.envs.env import SafetyEnv
+from safecdt_jax.envs.types import EnvParams
 from safecdt_jax.model.cdt import Params, newest_action
 from safecdt_jax.model.config import CDTConfig
 

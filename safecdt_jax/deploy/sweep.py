@@ -16,8 +16,6 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from envs.env import SafetyEnv
-from envs.types import EnvParams
 from safecdt_jax.deploy.config import DeployConfig
 from safecdt_jax.deploy.loop import (
     DeploySpec,
@@ -26,6 +24,8 @@ from safecdt_jax.deploy.loop import (
     deploy_init,
     init_adapters,
 )
+from safecdt_jax.envs.env import SafetyEnv
+from safecdt_jax.envs.types import EnvParams
 from safecdt_jax.model.cdt import Params
 from safecdt_jax.model.config import CDTConfig
 

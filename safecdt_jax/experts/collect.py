@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-import envs
+from safecdt_jax import envs
 from safecdt_jax.data.collect import (
     DEFAULT_CHUNK,
     env_params_attrs,

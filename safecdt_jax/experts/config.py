@@ -73,8 +73,7 @@ class ExpertConfig:
     obs_clip: float = 10.0
 
     def __post_init__(self) -> None:
-        import envs
-
+        from safecdt_jax import envs
         if self.task not in envs.NAMES:
             raise ValueError(f"ExpertConfig.task: unknown task {self.task!r}; valid names: "
                              f"{', '.join(envs.NAMES)}")
@@ -95,8 +94,7 @@ class ExpertConfig:
     @property
     def horizon(self) -> int:
         """Steps per episode: `episode_len`, or the task's time limit."""
-        import envs
-
+        from safecdt_jax import envs
         return self.episode_len or envs.make(self.task)[0].episode_length
 
     @property

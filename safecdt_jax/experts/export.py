@@ -11,7 +11,7 @@ from typing import Any
 import jax
 import numpy as np
 
-import envs
+from safecdt_jax import envs
 from safecdt_jax.data.dataset import atomic_path, write_text_atomic
 from safecdt_jax.experts.config import ExpertConfig
 from safecdt_jax.experts.networks import ObsNorm

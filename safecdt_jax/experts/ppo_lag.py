@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
-import envs
+from safecdt_jax import envs
 from safecdt_jax.experts.config import ExpertConfig
 from safecdt_jax.experts.networks import (
     ObsNorm,

@@ -202,8 +202,7 @@ def load_policy(
 
 def task_sizes(task: str) -> tuple[int, int, int] | None:
     """(obs_dim, act_dim, episode_len) of a task in `envs.NAMES`, else None (no env built)."""
-    import envs
-
+    from safecdt_jax import envs
     if task not in envs.NAMES:
         return None
     env, _ = envs.make(task)

@@ -7,10 +7,9 @@ import jax
 import jax.numpy as jnp
 from mujoco import mjx
 
-from envs.circle import CircleTask
-from envs.goal import GoalTask
-from envs.robots import N_SUBSTEPS, Robot
-from envs.types import EnvParams, State
+from safecdt_jax.envs.protocols import RobotLike, TaskLike
+from safecdt_jax.envs.robots import N_SUBSTEPS
+from safecdt_jax.envs.types import EnvParams, State
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -22,8 +21,8 @@ class SafetyEnv:
     """
 
     name: str
-    robot: Robot
-    task: GoalTask | CircleTask
+    robot: RobotLike
+    task: TaskLike
 
     @functools.cached_property
     def model(self) -> mjx.Model:
@@ -56,14 +55,14 @@ class SafetyEnv:
         """A new episode: layout re-sampled with keepouts, robot at rest, zero reward and cost."""
         k_task, k_next = jax.random.split(key)
         xy, yaw, task = self.task.reset(k_task, params, self.robot)
-        task = self.robot.reset_task(task)
+        robot = self.robot.init_state()
         data = self.robot.init_data(self.model, xy, yaw)
         zero = jnp.float32(0.0)
         info = {name: zero for name in self.task.cost_terms()}
         info |= {"goal_met": zero, "steps": jnp.int32(0), "nonfinite_actions": jnp.int32(0)}
-        obs = self._observe(params, data, task, _noise_key(k_next))
-        return State(obs=obs, reward=zero, cost=zero, done=zero, info=info, data=data, task=task,
-                     key=k_next)
+        obs = self._observe(params, data, robot, task, _noise_key(k_next))
+        return State(obs=obs, reward=zero, cost=zero, done=zero, info=info, data=data,
+                     robot=robot, task=task, key=k_next)
 
     def step(self, state: State, action: jax.Array, params: EnvParams) -> State:
         """One env step: clip the action to [-1, 1], 10 physics substeps, reward, cost, obs.
@@ -75,21 +74,21 @@ class SafetyEnv:
         finite = jnp.isfinite(action)
         action = jnp.clip(jnp.where(finite, action, 0.0), -1.0, 1.0)
         key, k_goal = jax.random.split(state.key)
-        data, task = self.robot.physics(self.model, state.data, action, params, state.task)
-        reward, costs, goal_met, task = self.task.step(k_goal, params, self.robot, data, task,
-                                                       self.dt)
+        data, robot = self.robot.physics(self.model, state.data, action, params, state.robot)
+        reward, costs, goal_met, task = self.task.step(k_goal, params, self.robot, data,
+                                                       state.task, self.dt)
         cost = jnp.any(jnp.stack(list(costs.values())) > 0).astype(jnp.float32)
         steps = state.info["steps"] + 1
         info = dict(costs, goal_met=goal_met, steps=steps,
                     nonfinite_actions=state.info["nonfinite_actions"] + jnp.any(~finite))
         done = (steps >= self.episode_length).astype(jnp.float32)
-        obs = self._observe(params, data, task, _noise_key(k_goal))
+        obs = self._observe(params, data, robot, task, _noise_key(k_goal))
         return State(obs=obs, reward=reward, cost=cost, done=done, info=info, data=data,
-                     task=task, key=key)
+                     robot=robot, task=task, key=key)
 
-    def _observe(self, params: EnvParams, data: mjx.Data, task: dict,
+    def _observe(self, params: EnvParams, data: mjx.Data, robot: dict, task: dict,
                  key: jax.Array) -> jax.Array:
-        sensors = self.robot.sensors(data, task, key)
+        sensors = self.robot.sensors(data, robot, key)
         return jnp.concatenate([sensors, self.task.observe(params, data, task)]).astype(
             jnp.float32)
 

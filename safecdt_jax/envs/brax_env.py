@@ -1,6 +1,6 @@
 """Any of our tasks as a `brax.envs.base.Env`, so Brax's own agents (e.g. `ppo.train`) train on it.
 
-    env = envs.brax_env.BraxSafetyEnv("CarGoal1")                  # level 1, default dynamics
+    env = BraxSafetyEnv("CarGoal1")      # safecdt_jax.envs.brax_env; level 1, default dynamics
     env = BraxSafetyEnv("CarGoal2", friction_scale=0.5)           # a shifted target
     state = env.reset(rng); state = env.step(state, action)
     state.metrics["cost"]                                         # the step's cost (0 or 1)
@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 from brax.envs.base import Env, State
 
-import envs as _envs
+from safecdt_jax import envs as _envs
 
 
 def _device_put_replicated(x, devices):

@@ -5,9 +5,10 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from envs.geometry import N_LIDAR_BINS, place, place_all, pseudo_lidar, rot2
-from envs.robots import GRAVITY, Robot
-from envs.types import MAX_HAZARDS, MAX_VASES, EnvParams
+from safecdt_jax.envs.geometry import N_LIDAR_BINS, place, place_all, pseudo_lidar, rot2
+from safecdt_jax.envs.protocols import RobotLike
+from safecdt_jax.envs.robots import GRAVITY
+from safecdt_jax.envs.types import MAX_HAZARDS, MAX_VASES, EnvParams
 
 GOAL_RADIUS = 0.3  # m: reached when the agent origin is this close
 GOAL_KEEPOUT = 0.305
@@ -26,7 +27,7 @@ class GoalTask:
 
     episode_length: int = 1000
 
-    def observation_size(self, robot: Robot) -> int:
+    def observation_size(self, robot: RobotLike) -> int:
         """Sensors then goal, hazards and vases lidars (16 bins each)."""
         return robot.n_sensors + 3 * N_LIDAR_BINS
 
@@ -34,7 +35,7 @@ class GoalTask:
         """Names of the per-term cost indicators reported in `info`."""
         return ("cost_hazards", "cost_vases_contact", "cost_vases_velocity")
 
-    def reset(self, key: jax.Array, params: EnvParams, robot: Robot):
+    def reset(self, key: jax.Array, params: EnvParams, robot: RobotLike):
         """Samples a layout: agent, goal, hazards, vases with keepouts; then re-samples the goal.
 
         Returns (agent_xy [2], yaw, task dict).
@@ -91,7 +92,7 @@ class GoalTask:
         pos = pos + v_vase * dt
         return {**task, "vases": pos, "vase_vel": v_vase}, jnp.any(touching)
 
-    def step(self, key, params: EnvParams, robot: Robot, data, task: dict, dt: float):
+    def step(self, key, params: EnvParams, robot: RobotLike, data, task: dict, dt: float):
         """Reward, cost terms and the next task state after a physics step of `dt` seconds."""
         task, contact = self._push_vases(params, robot, data, task, dt)
         agent = data.qpos[:2]

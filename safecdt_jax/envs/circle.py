@@ -5,9 +5,9 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from envs.geometry import N_LIDAR_BINS, pseudo_lidar
-from envs.robots import Robot
-from envs.types import EnvParams
+from safecdt_jax.envs.geometry import N_LIDAR_BINS, pseudo_lidar
+from safecdt_jax.envs.protocols import RobotLike
+from safecdt_jax.envs.types import EnvParams
 
 CIRCLE_RADIUS = 1.5  # m: the reward-optimal radius
 START_HALF_WIDTH = 0.8  # m: the agent starts uniformly in [-0.8, 0.8]^2
@@ -20,7 +20,7 @@ class CircleTask:
 
     episode_length: int = 500
 
-    def observation_size(self, robot: Robot) -> int:
+    def observation_size(self, robot: RobotLike) -> int:
         """Sensors then the circle lidar (the circle seen as one point at the origin)."""
         return robot.n_sensors + N_LIDAR_BINS
 
@@ -28,14 +28,14 @@ class CircleTask:
         """Names of the per-term cost indicators reported in `info`."""
         return ("cost_out_of_boundary",)
 
-    def reset(self, key: jax.Array, params: EnvParams, robot: Robot):
+    def reset(self, key: jax.Array, params: EnvParams, robot: RobotLike):
         """Uniform start in [-0.8, 0.8]^2 with a uniform heading; no objects."""
         k_xy, k_yaw = jax.random.split(key)
         xy = jax.random.uniform(k_xy, (2,), minval=-START_HALF_WIDTH, maxval=START_HALF_WIDTH)
         yaw = jax.random.uniform(k_yaw, (), maxval=2 * jnp.pi)
         return xy, yaw, {}
 
-    def step(self, key, params: EnvParams, robot: Robot, data, task: dict, dt: float):
+    def step(self, key, params: EnvParams, robot: RobotLike, data, task: dict, dt: float):
         """Reward 0.1 (-u y + v x) / rho / (1 + |rho - 1.5|) after the step; boundary cost."""
         x, y = data.qpos[0], data.qpos[1]
         u, v = data.qvel[0], data.qvel[1]

@@ -23,12 +23,12 @@ def _import_mjx_quietly() -> None:
 
 _import_mjx_quietly()
 
-from envs.circle import CircleTask, circle_params  # noqa: E402
-from envs.env import SafetyEnv  # noqa: E402
-from envs.goal import GoalTask, goal_params  # noqa: E402
-from envs.robots import CAR, POINT  # noqa: E402
-from envs.rollout import random_episode  # noqa: E402
-from envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State  # noqa: E402
+from safecdt_jax.envs.circle import CircleTask, circle_params  # noqa: E402
+from safecdt_jax.envs.env import SafetyEnv  # noqa: E402
+from safecdt_jax.envs.goal import GoalTask, goal_params  # noqa: E402
+from safecdt_jax.envs.robots import CAR, POINT  # noqa: E402
+from safecdt_jax.envs.rollout import random_episode  # noqa: E402
+from safecdt_jax.envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State  # noqa: E402
 
 # Per robot: bump when that robot's dynamics or sensors, or the task rules it runs under, change
 # (models, traction, sensor models, costs, layouts). Cached data and expert snapshots made under

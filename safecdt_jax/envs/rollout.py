@@ -4,8 +4,8 @@ from collections.abc import Callable
 
 import jax
 
-from envs.env import SafetyEnv
-from envs.types import EnvParams, State
+from safecdt_jax.envs.env import SafetyEnv
+from safecdt_jax.envs.types import EnvParams, State
 
 Policy = Callable[[jax.Array, State], jax.Array]  # (key, state) -> action [2]
 

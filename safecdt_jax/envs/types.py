@@ -53,7 +53,9 @@ class State:
       done: scalar 0.0/1.0, 1.0 once the episode's time limit is reached.
       info: dict of scalars: per-term cost indicators, `goal_met`, `steps`, `nonfinite_actions`.
       data: the MJX physics data of the robot.
-      task: dict of task arrays (object positions, goal, vase velocities, caster orientation...).
+      robot: dict of the robot's own arrays (the Car's caster orientation and drive level; empty
+        for the Point).
+      task: dict of task arrays (object positions, goal, vase velocities...).
       key: PRNG key for the episode's own randomness (goal re-sampling).
     """
 
@@ -63,5 +65,6 @@ class State:
     done: jax.Array
     info: dict[str, jax.Array]
     data: Any
+    robot: dict[str, jax.Array]
     task: dict[str, jax.Array]
     key: jax.Array

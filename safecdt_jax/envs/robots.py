@@ -15,8 +15,8 @@ import mujoco
 import numpy as np
 from mujoco import mjx
 
-from envs.geometry import rot2
-from envs.types import EnvParams
+from safecdt_jax.envs.geometry import rot2
+from safecdt_jax.envs.types import EnvParams
 
 GRAVITY = 9.81  # m/s^2
 MAGNETIC_FIELD = (0.0, -0.5)  # world xy field read by the magnetometer (z component is 0)
@@ -126,25 +126,25 @@ class Robot:
         data = data.replace(qpos=jnp.concatenate([xy, yaw[None]]))
         return mjx.forward(model, data)
 
+    def init_state(self) -> dict[str, jax.Array]:
+        """The robot's own arrays at reset (`State.robot`): none for the base robot."""
+        return {}
+
 
 class PointRobot(Robot):
     """Safety-Gymnasium's Point: a thrust along body x and a yaw velocity servo, both in MJX."""
 
     def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
-                task: dict) -> tuple[mjx.Data, dict]:
+                state: dict) -> tuple[mjx.Data, dict]:
         """Advances N_SUBSTEPS physics steps under `action` ([2], already in [-1, 1])."""
         m = _scaled_model(model, params)
         data = data.replace(ctrl=action)
         data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, d), data)
-        return mjx.forward(m, data), task
+        return mjx.forward(m, data), state
 
-    def sensors(self, data: mjx.Data, task: dict, key: jax.Array) -> jax.Array:
+    def sensors(self, data: mjx.Data, state: dict, key: jax.Array) -> jax.Array:
         """The 12 Point sensors (see `planar_sensors`); noise-free, so `key` is unused."""
         return planar_sensors(data)
-
-    def reset_task(self, task: dict) -> dict:
-        """Point has no extra robot state."""
-        return task
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -241,7 +241,7 @@ class CarRobot(Robot):
         return jnp.clip(action, -self.torque_limit, self.torque_limit)
 
     def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
-                task: dict) -> tuple[mjx.Data, dict]:
+                state: dict) -> tuple[mjx.Data, dict]:
         """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale;
         rolls the caster and records the drive level (mean |torque| / limit) for the chatter."""
         m = _scaled_model(model, params)
@@ -256,9 +256,9 @@ class CarRobot(Robot):
         data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, push(d)), data)
         data = mjx.forward(m, push(data))
         dt = N_SUBSTEPS * self.timestep
-        quat = _quat_integrate(task["caster_quat"], self._caster_angvel(data, task), dt)
+        quat = _quat_integrate(state["caster_quat"], self._caster_angvel(data, state), dt)
         drive = jnp.mean(jnp.abs(torque)) / self.torque_limit
-        return data, {**task, "caster_quat": quat, "drive": drive}
+        return data, {"caster_quat": quat, "drive": drive}
 
     def _caster_spin(self, data: mjx.Data) -> jax.Array:
         """The ball's angular velocity relative to the chassis, in the chassis frame (rad/s).
@@ -277,11 +277,11 @@ class CarRobot(Robot):
         spin *= jnp.minimum(1.0, self.caster_spin_cap / jnp.maximum(norm, 1e-12))
         return jnp.concatenate([spin, jnp.zeros(1)])
 
-    def _caster_angvel(self, data: mjx.Data, task: dict) -> jax.Array:
+    def _caster_angvel(self, data: mjx.Data, state: dict) -> jax.Array:
         """`_caster_spin` in the ball's own frame, as MuJoCo's ballangvel sensor reports it."""
-        return _quat_to_mat(task["caster_quat"]).T @ self._caster_spin(data)
+        return _quat_to_mat(state["caster_quat"]).T @ self._caster_spin(data)
 
-    def chatter(self, key: jax.Array, task: dict) -> jax.Array:
+    def chatter(self, key: jax.Array, state: dict) -> jax.Array:
         """Contact vibration of the sensors [24]: zero-mean Gaussian noise whose std per channel
         is `chatter_std` times the drive level of the last step (0 at rest).
 
@@ -292,21 +292,20 @@ class CarRobot(Robot):
         (4.8 / 2.9 / 1.2 m/s^2 at random torques of full / half / quarter range). A planar
         body cannot rattle, so the sensors get that noise instead (docs/ENVIRONMENTS.md).
         """
-        std = jnp.asarray(self.chatter_std, jnp.float32) * task["drive"]
+        std = jnp.asarray(self.chatter_std, jnp.float32) * state["drive"]
         return std * jax.random.normal(key, std.shape)
 
-    def sensors(self, data: mjx.Data, task: dict, key: jax.Array) -> jax.Array:
+    def sensors(self, data: mjx.Data, state: dict, key: jax.Array) -> jax.Array:
         """The 24 Car sensors: the 12 planar ones, ballangvel_rear (3), ballquat_rear as 3x3 (9),
         plus the contact chatter (`chatter`) drawn with `key`."""
-        ang = self._caster_angvel(data, task)
-        mat = _quat_to_mat(task["caster_quat"]).reshape(-1)
-        return jnp.concatenate([planar_sensors(data), ang, mat]) + self.chatter(key, task)
+        ang = self._caster_angvel(data, state)
+        mat = _quat_to_mat(state["caster_quat"]).reshape(-1)
+        return jnp.concatenate([planar_sensors(data), ang, mat]) + self.chatter(key, state)
 
-    def reset_task(self, task: dict) -> dict:
-        """The caster starts aligned with the chassis (identity), as in the reference, and the
-        car at rest (drive level 0)."""
-        return {**task, "caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0]),
-                "drive": jnp.float32(0.0)}
+    def init_state(self) -> dict[str, jax.Array]:
+        """`caster_quat`: the caster's orientation relative to the chassis, identity at reset as
+        in the reference; `drive`: the last step's mean |torque| / limit, 0 at rest."""
+        return {"caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0]), "drive": jnp.float32(0.0)}
 
 
 def _quat_to_mat(q: jax.Array) -> jax.Array:
