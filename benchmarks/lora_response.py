@@ -22,9 +22,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json
-from safecdt_jax.deploy import init_adapters, make_spec, make_variant, seed_keys
+from safecdt_jax.deploy import make_spec, make_variant, seed_keys, stack_specs, sweep
 from safecdt_jax.deploy.job import load_deployment
-from safecdt_jax.deploy.loop import deploy_episodes, deploy_init
 from safecdt_jax.deploy.rollout import evaluate_targets
 from safecdt_jax.model.lora import merge_lora
 
@@ -52,18 +51,16 @@ def response(ckpt: str, target: str, variants: list[str], seeds: int, budget: fl
         jax.random.PRNGKey(11), env, env_params, p, policy.cfg, r_t, c_t, episodes,
         clip_ctg=cfg.clip_ctg).costs.mean(1))
     keys = seed_keys(0, seeds)
-    adapters = init_adapters(keys, policy.params, policy.cfg)
     out = {"base": np.asarray(evaluate(policy.params)).tolist(), "variants": {}}
     for name in variants:
-        spec = make_spec(make_variant(name, cfg), budget, r_ref)
-        run = jax.jit(jax.vmap(lambda k, lora, spec=spec: deploy_episodes(
-            deploy_init(k, lora, spec, **static), jnp.arange(cfg.episodes), policy.params,
-            env_params, spec, **static)))
+        specs = stack_specs([make_spec(make_variant(name, cfg), budget, r_ref)])
         start = time.perf_counter()
-        carry, metrics = jax.device_get(run(keys, adapters))
+        metrics, carry = jax.device_get(sweep(keys, policy.params, env_params, specs, **static,
+                                              return_carry=True))
         wall = time.perf_counter() - start
+        metrics = jax.tree.map(lambda x: x[0], metrics)  # the one run
         after = [np.asarray(evaluate(merge_lora(policy.params, jax.tree.map(
-            lambda x, s=s: x[s], carry.lora), policy.cfg))).tolist() for s in range(seeds)]
+            lambda x, s=s: x[0, s], carry.lora), policy.cfg))).tolist() for s in range(seeds)]
         out["variants"][name] = {"stage_cost": stage_means(metrics.costs, cfg.stage_len),
                                  "stage_ctg_target": stage_means(metrics.ctg_target,
                                                                  cfg.stage_len),

@@ -91,3 +91,30 @@ def test_old_checkpoints_keep_their_token_scales():
     new = {"model": {**old["model"], "reward_scale": 0.1, "cost_scale": 0.1}, "optim": {},
            "pretrain": {"steps": 3}}
     assert config_diff(old, new) == []  # an old cached checkpoint is reused, not retrained
+
+
+def test_deployment_over_a_shift_axis_writes_rows_and_the_robustness_figure(tmp_path):
+    import jax
+
+    from safecdt_jax.data.collect import collect, write_collected
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.deploy.job import run_deployment, write_results
+    from safecdt_jax.envs.dynamics import parse_dynamics
+    from safecdt_jax.pretrain import default_pretrain, pretrain
+
+    data = write_collected(tmp_path / "PointCircle1.hdf5",
+                           collect(jax.random.PRNGKey(0), "PointCircle1", 4, horizon=20))
+    ckpt = pretrain(data, tmp_path / "ckpt", preset="tiny",
+                    config=default_pretrain("tiny", steps=2, chunk=2), progress=False).path
+    shifts = parse_dynamics("friction_scale=1.0:0.5:0.25")
+    res = run_deployment(ckpt, "PointCircle2", ["zero_shot", "safe_cdt"], [30.0], 1,
+                         cfg=DeployConfig(episodes=2, horizon=5, stage_len=1), progress=False,
+                         dynamics=shifts)
+    assert [(r["variant"], r["dynamics"]) for r in res["runs"][:3]] == [
+        ("zero_shot", {"friction_scale": 1.0}), ("zero_shot", {"friction_scale": 0.5}),
+        ("zero_shot", {"friction_scale": 0.25})]
+    assert [r["env_params"]["friction_scale"] for r in res["runs"]] == [1.0, 0.5, 0.25] * 2
+    written = write_results(tmp_path / "out", res, "shifted")
+    assert tmp_path / "out" / "robustness_friction_scale.png" in written
+    table = (tmp_path / "out" / "table.md").read_text()
+    assert "| safe_cdt [friction_scale=0.25] |" in table and table.count("| zero_shot [") == 3

@@ -75,6 +75,22 @@ def test_same_key_same_bits(swept):
         np.testing.assert_array_equal(getattr(again, name), value)
 
 
+def test_sweep_returns_the_final_carry(swept):
+    keys, specs, out = swept
+    env, params, model_cfg, base = tiny_setup()
+    metrics, carry = jax.device_get(sweep(keys, base, params, specs, env=env,
+                                          model_cfg=model_cfg, cfg=TINY_DEPLOY,
+                                          return_carry=True))
+    for name, value in out._asdict().items():  # the same program, the same bits
+        np.testing.assert_array_equal(getattr(metrics, name), value)
+    np.testing.assert_array_equal(carry.history["costs"], out.costs)  # [runs, seeds, episodes]
+    np.testing.assert_array_equal(carry.lam, out.lam[:, :, -1])
+    start = init_adapters(keys, base, model_cfg)
+    moved = [np.abs(a[0] - b).max() for a, b in zip(jax.tree.leaves(carry.lora),
+                                                    jax.tree.leaves(start), strict=True)]
+    assert max(moved) > 0  # safe_cdt (run 0) finetuned its adapters
+
+
 def test_variants_and_budgets_share_one_compilation(swept):
     keys, _, _ = swept
     env, params, model_cfg, base = tiny_setup()

@@ -40,9 +40,10 @@ def parse_targets(text: str) -> list[tuple[float, float]]:
 
 
 def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
-                    episodes: int, seed: int = 0, horizon: int | None = None
-                    ) -> dict[str, np.ndarray]:
-    """Episode returns and costs [n_targets, episodes] of checkpoint `ckpt` in `task`.
+                    episodes: int, seed: int = 0, horizon: int | None = None,
+                    dynamics: dict[str, float] | None = None) -> dict[str, np.ndarray]:
+    """Episode returns and costs [n_targets, episodes] of checkpoint `ckpt` in `task`, its
+    dynamics shifted by `dynamics` ({field: scale}, `envs.dynamics`; None: nominal).
 
     Every target runs on the same `episodes` layouts (keys from `seed`), in one jitted call,
     reading the tokens as the checkpoint's model config encodes them. `horizon` cuts every
@@ -51,9 +52,11 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     """
     from safecdt_jax import envs
     from safecdt_jax.deploy.rollout import evaluate_targets
+    from safecdt_jax.envs.dynamics import apply_dynamics
     from safecdt_jax.pretrain.checkpoint import load_policy
 
     env, params = envs.make(task)
+    params = apply_dynamics(params, dynamics or {})
     policy = load_policy(ckpt, task=task)
     rets = np.array([t[0] for t in targets])  # float64: reported as given
     costs = np.array([t[1] for t in targets])
@@ -121,7 +124,9 @@ def summarize_evaluation(task: str, res: dict[str, np.ndarray],
 def evaluation_table(summary: dict[str, Any]) -> str:
     """Markdown: the per-target table of `summarize_evaluation`, then one line per return target
     with the Spearman correlation of mean cost with cost target, and the data's median cost."""
-    lines = [f"{summary['task']}, {summary['episodes']} episodes per target", "",
+    shift = ",".join(f"{k}={v:g}" for k, v in summary.get("dynamics", {}).items())
+    lines = [f"{summary['task']}" + (f" ({shift})" if shift else "")
+             + f", {summary['episodes']} episodes per target", "",
              "| target return | target cost | mean return | mean cost | VR (%) |",
              "|---|---|---|---|---|"]
     lines += [f"| {row['target_return']:g} | {row['target_cost']:g} | {row['mean_return']:.2f} | "
@@ -142,9 +147,11 @@ def evaluation_table(summary: dict[str, Any]) -> str:
 
 def evaluate_checkpoint(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
                         episodes: int, seed: int = 0, horizon: int | None = None,
-                        data_median: float | None = None) -> dict[str, Any]:
+                        data_median: float | None = None,
+                        dynamics: dict[str, float] | None = None) -> dict[str, Any]:
     """`evaluate_policy` then `summarize_evaluation`: the summary dict, with the checkpoint
-    folder, seed and horizon added (see `evaluation_table` to print it)."""
-    res = evaluate_policy(ckpt, task, targets, episodes, seed, horizon)
+    folder, seed, horizon and dynamics shift added (see `evaluation_table` to print it)."""
+    res = evaluate_policy(ckpt, task, targets, episodes, seed, horizon, dynamics)
     summary = summarize_evaluation(task, res, data_median)
-    return {"checkpoint": os.fspath(ckpt), "seed": seed, "horizon": horizon, **summary}
+    return {"checkpoint": os.fspath(ckpt), "seed": seed, "horizon": horizon,
+            "dynamics": dict(dynamics or {}), **summary}

@@ -18,6 +18,11 @@ Variants = Annotated[str, typer.Option(
 Budgets = Annotated[str, typer.Option(help="Comma-separated cost budgets B (cost units).")]
 Seeds = Annotated[int, typer.Option(min=1, help="Seeds, all in one vmapped call.")]
 Episodes = Annotated[int, typer.Option(min=1, help="Deployment episodes per seed.")]
+Dynamics = Annotated[str | None, typer.Option(
+    help="Shift the target's dynamics, e.g. friction_scale=0.5,gear_scale=0.8; a field with "
+         "several values (friction_scale=1:0.75:0.5) is a run axis of the same compiled sweep "
+         "(several such fields: a grid). Fields: friction_scale, gear_scale, damping_scale, "
+         "mass_scale.")]
 
 
 def _fail(e: Exception) -> None:
@@ -29,11 +34,14 @@ def _deploy_config(episodes: int, horizon: int | None) -> DeployConfig:
     return DeployConfig(episodes=episodes, horizon=horizon)
 
 
-def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None) -> None:
-    """Parse and validate variants, budgets and the config before any long phase starts."""
+def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None,
+                dynamics: str | None = None) -> None:
+    """Parse and validate variants, budgets, shifts and the config before any long phase."""
     from safecdt_jax.deploy.config import make_variant
     from safecdt_jax.deploy.job import parse_list
+    from safecdt_jax.envs.dynamics import parse_dynamics
 
+    parse_dynamics(dynamics)
     cfg = _deploy_config(episodes, horizon)
     for v in parse_list(variant, str, "variant"):
         make_variant(v, cfg)
@@ -42,13 +50,16 @@ def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None) -
             raise ValueError(f"the cost budget must be positive, got {b:g}")
 
 
-def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed, out, title):
+def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed, out, title,
+                      dynamics=None):
     from safecdt_jax.deploy.job import parse_list, run_deployment, write_results
+    from safecdt_jax.envs.dynamics import parse_dynamics
 
     variants = parse_list(variant, str, "variant")
     budgets = parse_list(budget, float, "budget")
     cfg = _deploy_config(episodes, horizon)
-    results = run_deployment(ckpt, target, variants, budgets, seeds, seed=seed, cfg=cfg)
+    results = run_deployment(ckpt, target, variants, budgets, seeds, seed=seed, cfg=cfg,
+                             dynamics=parse_dynamics(dynamics))
     written = write_results(out, results, title)
     typer.echo((Path(out) / "table.md").read_text())
     typer.echo("wrote " + ", ".join(str(p) for p in written))
@@ -68,15 +79,17 @@ def deploy(
         min=1, help="Cut every episode at this many steps (default: the task's).")] = None,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
+    dynamics: Dynamics = None,
 ) -> None:
-    """Deploys a pretrained CDT in the pair's target task: every variant x budget x seed at once."""
+    """Deploys a pretrained CDT in the pair's target task: every variant x budget x dynamics
+    shift x seed at once."""
     from safecdt_jax.deploy.job import parse_pair
 
     try:
         _, target = parse_pair(pair)
-        _check_runs(variant, budget, episodes, horizon)
+        _check_runs(variant, budget, episodes, horizon, dynamics)
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
-                          out or Path("runs") / pair, f"Safe-CDT deployment {pair}")
+                          out or Path("runs") / pair, f"Safe-CDT deployment {pair}", dynamics)
     except ValueError as e:  # bad pair/variant/budget, CheckpointError: one clean line
         _fail(e)
 
@@ -101,6 +114,7 @@ def run(
     ] = None,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
+    dynamics: Dynamics = None,
 ) -> None:
     """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report."""
     from safecdt_jax.deploy.job import parse_pair
@@ -110,7 +124,7 @@ def run(
     start = time.perf_counter()
     try:
         source, target = parse_pair(pair)
-        _check_runs(variant, budget, episodes, horizon)
+        _check_runs(variant, budget, episodes, horizon, dynamics)
         typer.echo(f"[1/3] source data: {source}, {behaviour} behaviour")
         total = (data_episodes or 1000) if behaviour == "scripted" else planned_episodes(
             source, data_episodes)
@@ -122,10 +136,12 @@ def run(
         # collector change) or of another config is retrained, not an error.
         ckpt = ensure_checkpoint(data, source, preset, steps, seed=seed, overwrite=True)
         typer.echo(f"      {ckpt}")
-        typer.echo(f"[3/3] deployment: {target}, {variant}, B={budget}, {seeds} seeds x "
-                   f"{episodes} episodes")
+        shifted = f", dynamics {dynamics}" if dynamics else ""
+        typer.echo(f"[3/3] deployment: {target}{shifted}, {variant}, B={budget}, {seeds} seeds "
+                   f"x {episodes} episodes")
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
-                          out or Path("runs") / pair, f"Safe-CDT {pair} ({preset} preset)")
+                          out or Path("runs") / pair, f"Safe-CDT {pair} ({preset} preset)",
+                          dynamics)
     except ValueError as e:
         _fail(e)
     typer.echo(f"total {time.perf_counter() - start:.0f} s")
@@ -145,6 +161,9 @@ def evaluate(
         help="Data set to compare with: prints its median episode cost.")] = None,
     out: Annotated[Path | None, typer.Option(
         help="Also write the summary and every episode's return and cost here (JSON).")] = None,
+    dynamics: Annotated[str | None, typer.Option(
+        help="Shift the task's dynamics, e.g. friction_scale=0.5,gear_scale=0.8 (one value per "
+             "field here; `deploy` takes a list of values as a run axis).")] = None,
 ) -> None:
     """Rolls out the CDT for each (return, cost) target; prints mean return, cost and VR, and
     how the mean cost follows the cost target (Spearman, per return target)."""
@@ -158,10 +177,16 @@ def evaluate(
         )
         from safecdt_jax.data import summarize_dataset
         from safecdt_jax.data.dataset import write_text_atomic
+        from safecdt_jax.envs.dynamics import parse_dynamics
 
         pairs = parse_targets(targets)
+        shifts = parse_dynamics(dynamics)
+        if len(shifts) > 1:
+            raise ValueError("evaluate takes one value per dynamics field; deploy --dynamics "
+                             "sweeps a list of values")
         median = None if data is None else summarize_dataset(data)["cost_median"]
-        summary = evaluate_checkpoint(ckpt, task, pairs, episodes, seed, horizon, median)
+        summary = evaluate_checkpoint(ckpt, task, pairs, episodes, seed, horizon, median,
+                                      shifts[0])
     except (ValueError, OSError) as e:  # bad targets, task, checkpoint or data file: one line
         _fail(e)
     typer.echo(evaluation_table(summary))

@@ -87,20 +87,25 @@ def run_deployment(
     seed: int = 0,
     cfg=None,
     progress: bool = True,
+    dynamics: Sequence[dict[str, float]] = ({},),
 ) -> dict[str, Any]:
-    """Deploy checkpoint `ckpt` into task `target` for every (variant, budget) and seed.
+    """Deploy checkpoint `ckpt` into task `target` for every (variant, budget, shift) and seed.
 
-    `cfg` (default `DeployConfig()`) sets the deployment; its token scales are replaced by the
-    checkpoint's (see `load_deployment`).
+    `cfg` (default `DeployConfig()`) sets the deployment; the token encoding comes with the
+    checkpoint. `dynamics` lists the target's dynamics shifts ({field: scale}, from
+    `envs.dynamics.parse_dynamics`; `{}` is the nominal target): each is a run axis of the same
+    compiled sweep, next to variants and budgets.
 
     One sweep call (runs x seeds); the episodes advance in stage-sized chunks of the same
     compiled program so a progress bar can follow. Returns the results record (plain Python,
-    JSON-ready): `runs`, one per (variant, budget), each with per-episode metrics [seeds][episodes]
-    and the across-seed summary; plus configs, versions and timings.
+    JSON-ready): `runs`, one per (variant, budget, shift), each with its shift, its env params,
+    per-episode metrics [seeds][episodes] and the across-seed summary; plus configs, versions
+    and timings.
     """
     from safecdt_jax.deploy.config import make_variant
     from safecdt_jax.deploy.loop import make_spec, seed_keys
     from safecdt_jax.deploy.sweep import stack_specs, sweep
+    from safecdt_jax.envs.dynamics import apply_dynamics, params_record, stack_params
     from safecdt_jax.pretrain.run import versions
     from safecdt_jax.progress import Bar
     from safecdt_jax.report.tables import summarize_runs
@@ -108,19 +113,24 @@ def run_deployment(
     if seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {seeds}")
     env, env_params, policy, cfg, r_ref = load_deployment(ckpt, target, cfg)
-    combos = list(itertools.product(variants, budgets))
-    specs = stack_specs([make_spec(make_variant(v, cfg), b, r_ref) for v, b in combos])
+    dynamics = list(dynamics) or [{}]
+    combos = list(itertools.product(variants, budgets, dynamics))
+    specs = stack_specs([make_spec(make_variant(v, cfg), b, r_ref) for v, b, _ in combos])
+    per_run = [apply_dynamics(env_params, shift) for _, _, shift in combos]
+    # One target for all runs is broadcast (as before shifts existed); several are a run axis.
+    batched = len(dynamics) > 1
+    swept_params = stack_params(per_run) if batched else per_run[0]
     keys = seed_keys(seed, seeds)
     chunk = cfg.stage_len if cfg.episodes % cfg.stage_len == 0 else cfg.episodes
     label = f"deploy {len(combos)} run(s) x {seeds} seeds"
     start = time.perf_counter()
     with Bar(cfg.episodes, label, enabled=progress) as bar:
-        metrics = sweep(keys, policy.params, env_params, specs, env=env, model_cfg=policy.cfg,
-                        cfg=cfg, chunk=chunk, progress=bar.update)
+        metrics = sweep(keys, policy.params, swept_params, specs, env=env, model_cfg=policy.cfg,
+                        cfg=cfg, chunk=chunk, progress=bar.update, env_params_batched=batched)
         metrics = jax.device_get(metrics)
     wall = time.perf_counter() - start
     runs = []
-    for r, (variant, budget) in enumerate(combos):
+    for r, (variant, budget, shift) in enumerate(combos):
         per = {name: np.asarray(value[r]) for name, value in metrics._asdict().items()}
         named = {"return": per["returns"], "cost": per["costs"], "violation": per["violation"],
                  "ctg_target": per["ctg_target"], "rtg_target": per["rtg_target"],
@@ -129,6 +139,8 @@ def run_deployment(
         runs.append({
             "variant": variant,
             "budget": float(budget),
+            "dynamics": dict(shift),
+            "env_params": params_record(per_run[r]),
             "summary": summarize_runs(named),
             "metrics": {k: v.astype(float).tolist() for k, v in named.items()},
         })
@@ -149,22 +161,37 @@ def run_deployment(
     }
 
 
-def run_label(run: dict[str, Any], budgets: int) -> str:
-    """A run's row label: the variant, plus the budget when several budgets were run."""
-    return run["variant"] + (f" B={run['budget']:g}" if budgets > 1 else "")
+def run_label(run: dict[str, Any], budgets: int, shifts: int = 1) -> str:
+    """A run's row label: the variant, plus the budget when several budgets were run and the
+    dynamics shift when several shifts were."""
+    from safecdt_jax.envs.dynamics import shift_label
+
+    label = run["variant"] + (f" B={run['budget']:g}" if budgets > 1 else "")
+    return label + (f" [{shift_label(run.get('dynamics', {}))}]" if shifts > 1 else "")
+
+
+def shift_axes(runs: Sequence[dict[str, Any]]) -> dict[str, list[float]]:
+    """The dynamics fields whose value differs between runs, with their sorted values."""
+    fields = {k for run in runs for k in run.get("dynamics", {})}
+    axes = {f: sorted({run["dynamics"][f] for run in runs if f in run.get("dynamics", {})})
+            for f in sorted(fields)}
+    return {f: v for f, v in axes.items() if len(v) > 1}
 
 
 def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: str) -> list[Path]:
     """Write `results.json`, `table.md` and the figures into `out_dir` (each atomically)."""
     from safecdt_jax.data.dataset import write_text_atomic
-    from safecdt_jax.report.figures import plot_deployment
+    from safecdt_jax.envs.dynamics import shift_label
+    from safecdt_jax.report.figures import plot_deployment, plot_robustness
     from safecdt_jax.report.tables import results_table
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     written = [write_text_atomic(out / "results.json", json.dumps(results, indent=1))]
     budgets = sorted({run["budget"] for run in results["runs"]})
-    rows = [dict(run["summary"], label=run_label(run, len(budgets))) for run in results["runs"]]
+    shifts = sorted({shift_label(run.get("dynamics", {})) for run in results["runs"]})
+    rows = [dict(run["summary"], label=run_label(run, len(budgets), len(shifts)))
+            for run in results["runs"]]
     timing = results["timing"]
     header = (f"# {title}\n\n{results['source']} -> {results['target']}, "
               f"{results['seeds']} seeds x {results['deploy_config']['episodes']} episodes; "
@@ -173,9 +200,14 @@ def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: st
               f"({timing['env_steps_per_s']:,.0f} env steps/s).\n\n")
     written.append(write_text_atomic(out / "table.md", header + results_table(rows)))
     for budget in budgets:
-        runs = {run_label(r, 1): r["metrics"] for r in results["runs"] if r["budget"] == budget}
+        runs = {run_label(r, 1, len(shifts)): r["metrics"] for r in results["runs"]
+                if r["budget"] == budget}
         folder = out if len(budgets) == 1 else out / f"budget_{budget:g}"
         figures = plot_deployment(runs, budget, folder, f"{title}, B={budget:g}")
         written += [Path(p) for p in figures]
+    for field, values in shift_axes(results["runs"]).items():
+        if len(values) >= 3:  # a robustness curve needs a few points
+            written.append(Path(plot_robustness(results["runs"], field,
+                                                out / f"robustness_{field}.png", title)))
     return written
 

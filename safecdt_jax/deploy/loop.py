@@ -142,13 +142,16 @@ def deploy_episodes(
         window = window_mask(e, cfg.episodes, cfg.window)
         violations = history["costs"] > budget
         lam = lambda_update(carry.lam, violations, window, e, cfg, enabled=variant.reweight)
-        lora, opt_state, aux = lora_finetune(k_lora, carry.lora, carry.opt_state, base_params,
-                                             model_cfg, buffer, lam, budget, variant, cfg)
-        sched, a_c, a_r = scheduler_step(carry.scheduler, e, history["costs"],
-                                         history["returns"], history["rtg"], window, budget,
-                                         variant, cfg)
-        metrics = Metrics(ep["return"], ep["cost"], ep["cost"] > budget, ctg, rtg, lam, a_c,
-                          a_r, aux["loss"][-1])
+        lora, opt_state, aux = lora_finetune(
+            k_lora, carry.lora, carry.opt_state, base_params=base_params, model_cfg=model_cfg,
+            buffer=buffer, lam=lam, budget=budget, variant=variant, cfg=cfg)
+        sched, a_c, a_r = scheduler_step(
+            carry.scheduler, e, window_costs=history["costs"], window_returns=history["returns"],
+            window_rtg_targets=history["rtg"], window_valid=window, budget=budget,
+            variant=variant, cfg=cfg)
+        metrics = Metrics(returns=ep["return"], costs=ep["cost"], violation=ep["cost"] > budget,
+                          ctg_target=ctg, rtg_target=rtg, lam=lam, a_c=a_c, a_r=a_r,
+                          lora_loss=aux["loss"][-1])
         return Carry(lora, opt_state, buffer, sched, lam, history, key), metrics
 
     return jax.lax.scan(episode, carry, jnp.asarray(episodes, jnp.int32))

@@ -18,6 +18,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from safecdt_jax.deploy.config import DeployConfig
 from safecdt_jax.deploy.loop import (
+    Carry,
     DeploySpec,
     Metrics,
     deploy_episodes,
@@ -61,7 +62,8 @@ def sweep(
     devices: list | None = None,
     chunk: int | None = None,
     progress: Callable[[int], None] | None = None,
-) -> Metrics:
+    return_carry: bool = False,
+) -> Metrics | tuple[Metrics, Carry]:
     """Deploy every run in `specs` with every seed key; returns `Metrics` arrays [R, S, E].
 
     Args:
@@ -77,6 +79,8 @@ def sweep(
             runs the same compiled program, so chunking changes nothing but the progress
             reports; it must divide `cfg.episodes`.
         progress: called with the number of episodes finished after each chunk.
+        return_carry: also return the final `Carry` (leaves [R, S, ...]: the adapters after
+            the deployment, the buffer, the scheduler and lambda), as `(metrics, carry)`.
 
     Runs and seeds execute as one program; no Python loop over either.
     """
@@ -106,7 +110,10 @@ def sweep(
         if progress is not None:
             jax.block_until_ready(parts[-1])
             progress(chunk)
-    return jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=2), *parts)
+    metrics = jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=2), *parts)
+    if return_carry:
+        return metrics, jax.tree.map(lambda x: x[:, :n_seeds], carry)
+    return metrics
 
 
 def stack_specs(specs: list[DeploySpec]) -> DeploySpec:

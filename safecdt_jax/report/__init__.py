@@ -1,6 +1,6 @@
 """Results of deployments as tables (the paper's Table 1 row) and figures (PNG)."""
 
-from safecdt_jax.report.figures import plot_deployment
+from safecdt_jax.report.figures import plot_deployment, plot_robustness
 from safecdt_jax.report.tables import (
     METRIC_NAMES,
     markdown_table,
@@ -9,5 +9,5 @@ from safecdt_jax.report.tables import (
     summarize_runs,
 )
 
-__all__ = ["METRIC_NAMES", "markdown_table", "plot_deployment", "results_table", "seed_summaries",
-           "summarize_runs"]
+__all__ = ["METRIC_NAMES", "markdown_table", "plot_deployment", "plot_robustness",
+           "results_table", "seed_summaries", "summarize_runs"]

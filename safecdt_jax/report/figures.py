@@ -61,3 +61,47 @@ def plot_deployment(
         plt.close(fig)
         paths.append(path)
     return paths
+
+
+def plot_robustness(runs: list[Mapping[str, Any]], field: str, out_path: str | os.PathLike,
+                    title: str) -> str:
+    """Write a two-panel PNG: mean episode cost and VR (%) against the shift value `field`,
+    one line per group of runs that differ only in that value, mean +- std over seeds, each
+    line's budget drawn on the cost panel.
+
+    Each run needs `variant`, `budget`, `dynamics` ({field: scale}) and `summary`
+    (`summarize_runs`). Written atomically; returns the path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    groups: dict[str, list] = {}
+    for run in runs:
+        rest = {k: v for k, v in run["dynamics"].items() if k != field}
+        label = run["variant"] + "".join(f" {k}={v:g}" for k, v in rest.items())
+        label += f" B={run['budget']:g}" if len({r["budget"] for r in runs}) > 1 else ""
+        groups.setdefault(label, []).append(run)
+    fig, (ax_c, ax_v) = plt.subplots(1, 2, figsize=(9.6, 3.6))
+    for label, members in groups.items():
+        members = sorted(members, key=lambda r: r["dynamics"][field])
+        x = [r["dynamics"][field] for r in members]
+        s = [r["summary"] for r in members]
+        line = ax_c.errorbar(x, [v["mean_cost_mean"] for v in s],
+                             yerr=[v["mean_cost_std"] for v in s], marker="o", capsize=3,
+                             label=label)
+        ax_c.axhline(members[0]["budget"], color=line[0].get_color(), ls="--", lw=1)
+        ax_v.errorbar(x, [v["vr_mean"] for v in s], yerr=[v["vr_std"] for v in s], marker="o",
+                      capsize=3, label=label)
+    ax_c.set_ylabel("mean episode cost (dashed: budget)")
+    ax_v.set_ylabel("violation rate VR (%)")
+    for ax in (ax_c, ax_v):
+        ax.set_xlabel(field)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    with atomic_path(out_path, suffix=".png") as tmp:
+        fig.savefig(tmp, dpi=120)
+    plt.close(fig)
+    return os.fspath(out_path)
