@@ -63,21 +63,16 @@ def ours_trace(task: str, episodes: int, steps: int, seed: int, actions=None) ->
     import jax.numpy as jnp
 
     from safecdt_jax import envs
+    from safecdt_jax.envs.rollout import scan_episode, uniform_policy
+
     env, params = envs.make(task)
     script = None if actions is None else jnp.asarray(actions, jnp.float32)
 
+    def policy(key, state):
+        return uniform_policy(key, state) if script is None else script[state.info["steps"]]
+
     def episode(key):
-        k_reset, k_act = jax.random.split(key)
-
-        def body(state, x):
-            k, t = x
-            a = jax.random.uniform(k, (2,), minval=-1.0, maxval=1.0) if script is None \
-                else script[t]
-            state = env.step(state, a, params)
-            return state, state.obs
-
-        xs = (jax.random.split(k_act, steps), jnp.arange(steps))
-        return jax.lax.scan(body, env.reset(k_reset, params), xs)[1]
+        return scan_episode(env, params, key, policy, lambda s: s.obs, steps)[1]
 
     keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
     return np.asarray(jax.jit(jax.vmap(episode))(keys))

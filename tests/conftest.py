@@ -8,8 +8,25 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", str(CACHE_DIR))
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
 # Cache every compiled program: the suite is dominated by compile time, not run time.
 jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory):
+    """(data path, checkpoint path, folder): a 4-episode PointCircle1 data set (20 steps each)
+    and a tiny CDT pretrained for 2 updates, built once for every test that only needs some
+    valid checkpoint to evaluate or deploy."""
+    from safecdt_jax.data.collect import collect, write_collected
+    from safecdt_jax.pretrain import default_pretrain, pretrain
+
+    tmp = tmp_path_factory.mktemp("tiny_run")
+    data = write_collected(tmp / "PointCircle1.hdf5",
+                           collect(jax.random.PRNGKey(0), "PointCircle1", 4, horizon=20))
+    cfg = default_pretrain("tiny", steps=2, chunk=2)
+    ckpt = pretrain(data, tmp / "ckpt", preset="tiny", config=cfg, progress=False).path
+    return data, ckpt, tmp

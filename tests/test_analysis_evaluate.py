@@ -2,7 +2,6 @@
 
 import json
 
-import jax
 import numpy as np
 import pytest
 from typer.testing import CliRunner
@@ -65,20 +64,6 @@ def test_summary_rows_spearman_and_median_line():
     assert s["cost_following"][0]["spearman"] is None and s["data_median_cost"] is None
     assert "Spearman undefined" in evaluation_table(s)
     json.dumps(s, allow_nan=False)
-
-
-@pytest.fixture(scope="module")
-def tiny_run(tmp_path_factory):
-    """A 4-episode PointCircle1 data set (20 steps each) and a tiny CDT pretrained 2 updates."""
-    from safecdt_jax.data.collect import collect, write_collected
-    from safecdt_jax.pretrain import default_pretrain, pretrain
-
-    tmp = tmp_path_factory.mktemp("evaluate")
-    data = write_collected(tmp / "PointCircle1.hdf5",
-                           collect(jax.random.PRNGKey(0), TASK, 4, horizon=20))
-    cfg = default_pretrain("tiny", steps=2, chunk=2)
-    ckpt = pretrain(data, tmp / "ckpt", preset="tiny", config=cfg, progress=False).path
-    return data, ckpt, tmp
 
 
 def test_cli_evaluate_prints_and_writes_the_summary(tiny_run):

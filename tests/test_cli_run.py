@@ -17,6 +17,7 @@ def cache(tmp_path, monkeypatch):
     return tmp_path
 
 
+@pytest.mark.slow
 def test_run_end_to_end_then_reuses_data_and_checkpoint(cache):
     out = cache / "run"
     result = CliRunner().invoke(app, [*ARGS, "--out", str(out)])
@@ -93,19 +94,12 @@ def test_old_checkpoints_keep_their_token_scales():
     assert config_diff(old, new) == []  # an old cached checkpoint is reused, not retrained
 
 
-def test_deployment_over_a_shift_axis_writes_rows_and_the_robustness_figure(tmp_path):
-    import jax
-
-    from safecdt_jax.data.collect import collect, write_collected
+def test_deployment_over_a_shift_axis_writes_rows_and_the_robustness_figure(tiny_run, tmp_path):
     from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.deploy.job import run_deployment, write_results
     from safecdt_jax.envs.dynamics import parse_dynamics
-    from safecdt_jax.pretrain import default_pretrain, pretrain
 
-    data = write_collected(tmp_path / "PointCircle1.hdf5",
-                           collect(jax.random.PRNGKey(0), "PointCircle1", 4, horizon=20))
-    ckpt = pretrain(data, tmp_path / "ckpt", preset="tiny",
-                    config=default_pretrain("tiny", steps=2, chunk=2), progress=False).path
+    ckpt = tiny_run[1]
     shifts = parse_dynamics("friction_scale=1.0:0.5:0.25")
     res = run_deployment(ckpt, "PointCircle2", ["zero_shot", "safe_cdt"], [30.0], 1,
                          cfg=DeployConfig(episodes=2, horizon=5, stage_len=1), progress=False,

@@ -148,6 +148,7 @@ _TWO_DEVICES = textwrap.dedent("""
 """)
 
 
+@pytest.mark.slow
 def test_two_forced_cpu_devices_match_one(swept):
     _, _, out = swept
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -46,6 +46,7 @@ def test_action_saturates_at_force_limit():
     assert _speed(hold("CarCircle1", (0.01, 0.01), 1.0)) < 0.7 * _speed(b)
 
 
+@pytest.mark.slow
 def test_car_random_action_drift_matches_reference():
     """Under uniform random (saturating, so bang-bang) actions the reference car drifts forward:
     native MuJoCo on Safety-Gymnasium's car.xml, 200 episodes of 500 env steps, moves its origin

@@ -149,6 +149,7 @@ def test_pushing_a_vase_costs_in_level_2_only():
         assert max(costs) == expected
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("task", ["CarGoal", "CarCircle", "PointCircle"])
 def test_random_policy_costs_more_on_level_2(task):
     # Random-policy costs are heavy-tailed (a robot parked in a hazard costs every step), so a
