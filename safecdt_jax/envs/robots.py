@@ -285,7 +285,7 @@ class CarRobot(Robot):
         """Contact vibration of the sensors [24]: zero-mean Gaussian noise whose std per channel
         is `chatter_std` times the drive level of the last step (0 at rest).
 
-        Native MuJoCo's chassis rattles on its four stiff contacts whenever the wheel torques are
+        Native MuJoCo's chassis rattles on its wheel and caster contacts whenever the torques are
         large: under random actions the accelerometer's z reads 9.5 +- 4.8 m/s^2 and gyro x/y
         +-0.45/0.64 rad/s, with no relation to the state (R^2 < 0.2 against speeds, yaw rate
         and actions) and a negative lag-1 autocorrelation; its std grows with the mean |torque|
