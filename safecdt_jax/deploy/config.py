@@ -51,8 +51,8 @@ class DeployConfig:
             asking 50% above the source's 95th-percentile return, far enough to probe the return
             the target domain allows but not so far that the RTG token leaves the pretraining
             support (where a DT's behaviour is unreliable). Assumes R_ref > 0.
-        budget: default cost budget B (30). The functions take the budget as an argument (a
-            traced scalar, so budgets can be swept with vmap); this is the value callers pass.
+        budget: default cost budget B (30): the CLI's `--budget` default. The loop's functions
+            take the budget as an argument (a traced scalar, so budgets are swept with vmap).
         lambda_warmup: the reweighting multiplier is frozen until this many episodes have
             finished (10); it first updates after episode index lambda_warmup - 1, when the
             window is full for W = 10.

@@ -1,5 +1,6 @@
 """Safety-Gymnasium's Goal and Circle tasks for the Point and Car robots, in MuJoCo-MJX.
 
+    from safecdt_jax import envs
     env, params = envs.make("CarGoal1")
     state = env.reset(key, params)
     state = env.step(state, action, params)
@@ -41,11 +42,16 @@ NAMES = tuple(f"{robot}{task}{level}" for robot in ("Car", "Point") for task in 
 _ENVS: dict[str, SafetyEnv] = {}
 
 
-def physics_version(name: str) -> int:
-    """The physics version of task `name`'s robot (`PHYSICS_VERSIONS`); ValueError if unknown."""
+def _robot_name(name: str) -> str:
+    """'Car' or 'Point' for a valid task name; ValueError naming the valid names otherwise."""
     if name not in NAMES:
         raise ValueError(f"unknown task {name!r}; valid names: {', '.join(NAMES)}")
-    return PHYSICS_VERSIONS["Car" if name.startswith("Car") else "Point"]
+    return "Car" if name.startswith("Car") else "Point"
+
+
+def physics_version(name: str) -> int:
+    """The physics version of task `name`'s robot (`PHYSICS_VERSIONS`); ValueError if unknown."""
+    return PHYSICS_VERSIONS[_robot_name(name)]
 
 
 def make(name: str) -> tuple[SafetyEnv, EnvParams]:
@@ -54,9 +60,7 @@ def make(name: str) -> tuple[SafetyEnv, EnvParams]:
     Both levels of a task return the same env object, so they share compiled code.
     Raises ValueError naming the valid names for an unknown name.
     """
-    if name not in NAMES:
-        raise ValueError(f"unknown task {name!r}; valid names: {', '.join(NAMES)}")
-    robot_name, level = ("Car" if name.startswith("Car") else "Point"), int(name[-1])
+    robot_name, level = _robot_name(name), int(name[-1])
     task_name = name[len(robot_name):-1]
     key = robot_name + task_name
     if key not in _ENVS:
