@@ -124,8 +124,10 @@ def summarize_evaluation(task: str, res: dict[str, np.ndarray],
 def evaluation_table(summary: dict[str, Any]) -> str:
     """Markdown: the per-target table of `summarize_evaluation`, then one line per return target
     with the Spearman correlation of mean cost with cost target, and the data's median cost."""
-    shift = ",".join(f"{k}={v:g}" for k, v in summary.get("dynamics", {}).items())
-    lines = [f"{summary['task']}" + (f" ({shift})" if shift else "")
+    from safecdt_jax.envs.dynamics import shift_label
+
+    shift = summary.get("dynamics", {})
+    lines = [f"{summary['task']}" + (f" ({shift_label(shift)})" if shift else "")
              + f", {summary['episodes']} episodes per target", "",
              "| target return | target cost | mean return | mean cost | VR (%) |",
              "|---|---|---|---|---|"]
