@@ -105,6 +105,7 @@ def test_metrics_follow_the_rules(swept):
     _, _, out = swept
     safe, zero = 0, 1
     np.testing.assert_array_equal(out.violation, out.costs > BUDGET)
+    assert np.all(out.costs <= BUDGET + 1)  # the runtime budget ends an episode at B + 1
     # zero_shot: fixed CR_0 and RR_0 targets, no lambda.
     np.testing.assert_allclose(out.ctg_target[zero], 0.6 * BUDGET)
     np.testing.assert_allclose(out.rtg_target[zero], 0.5 * R_REF)

@@ -68,6 +68,22 @@ def test_unclipped_ctg_goes_negative():
     np.testing.assert_allclose(ctg[-1], 5.0 - np.asarray(ep["costs"])[:-1].sum())
 
 
+def test_runtime_budget_ends_the_episode_at_the_first_step_over_it():
+    env, params, cfg, model, run = _setup()
+    full = jax.device_get(run(jax.random.PRNGKey(3), 40.0, 5.0))
+    stop = 4.0
+    assert full["cost"] > stop + 1  # the biased policy overruns, so the wrapper must act
+    cut = jax.device_get(jax.jit(lambda k: cdt_episode(
+        k, env, params, model, cfg, 40.0, 5.0, stop_cost=stop))(jax.random.PRNGKey(3)))
+    over = int(np.argmax(np.cumsum(full["costs"]) > stop))  # the step whose cost crosses B
+    assert int(cut["length"]) == over + 1
+    assert cut["cost"] == stop + 1  # 0/1 costs: a violating episode costs B + 1
+    n = over + 1
+    np.testing.assert_array_equal(cut["actions"][:n], full["actions"][:n])
+    np.testing.assert_array_equal(cut["rewards"][n:], 0.0)
+    assert cut["return"] == pytest.approx(full["rewards"][:n].sum(), abs=1e-4)
+
+
 def test_same_key_same_bits_and_vmapped_targets_match_single_runs():
     _, params, cfg, model, run = _setup()
     env = envs.make(TASK)[0]

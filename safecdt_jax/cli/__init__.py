@@ -4,6 +4,7 @@ Command modules import heavy dependencies (JAX, MJX) inside their functions, so 
 """
 
 from safecdt_jax.cli import (
+    baselines,  # noqa: F401
     data,  # noqa: F401
     demo,  # noqa: F401  (each module registers its commands)
     deploy,  # noqa: F401

@@ -30,8 +30,14 @@ def _fail(e: Exception) -> None:
     raise typer.Exit(1) from e
 
 
-def _deploy_config(episodes: int, horizon: int | None) -> DeployConfig:
-    return DeployConfig(episodes=episodes, horizon=horizon)
+FullEpisodes = Annotated[bool, typer.Option(
+    help="Run every episode to the time limit instead of ending it at the first step over "
+         "the budget (the paper's runtime budget, the default).")]
+
+
+def _deploy_config(episodes: int, horizon: int | None, full_episodes: bool = False
+                   ) -> DeployConfig:
+    return DeployConfig(episodes=episodes, horizon=horizon, stop_over_budget=not full_episodes)
 
 
 def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None,
@@ -51,13 +57,13 @@ def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None,
 
 
 def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed, out, title,
-                      dynamics=None):
+                      dynamics=None, full_episodes=False):
     from safecdt_jax.deploy.job import parse_list, run_deployment, write_results
     from safecdt_jax.envs.dynamics import parse_dynamics
 
     variants = parse_list(variant, str, "variant")
     budgets = parse_list(budget, float, "budget")
-    cfg = _deploy_config(episodes, horizon)
+    cfg = _deploy_config(episodes, horizon, full_episodes)
     results = run_deployment(ckpt, target, variants, budgets, seeds, seed=seed, cfg=cfg,
                              dynamics=parse_dynamics(dynamics))
     written = write_results(out, results, title)
@@ -80,6 +86,7 @@ def deploy(
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
+    full_episodes: FullEpisodes = False,
 ) -> None:
     """Deploys a pretrained CDT in the pair's target task: every variant x budget x dynamics
     shift x seed at once."""
@@ -89,7 +96,8 @@ def deploy(
         _, target = parse_pair(pair)
         _check_runs(variant, budget, episodes, horizon, dynamics)
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
-                          out or Path("runs") / pair, f"Safe-CDT deployment {pair}", dynamics)
+                          out or Path("runs") / pair, f"Safe-CDT deployment {pair}", dynamics,
+                          full_episodes)
     except ValueError as e:  # bad pair/variant/budget, CheckpointError: one clean line
         _fail(e)
 
@@ -115,6 +123,7 @@ def run(
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
+    full_episodes: FullEpisodes = False,
 ) -> None:
     """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report."""
     from safecdt_jax.deploy.job import parse_pair
@@ -141,7 +150,7 @@ def run(
                    f"x {episodes} episodes")
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
                           out or Path("runs") / pair, f"Safe-CDT {pair} ({preset} preset)",
-                          dynamics)
+                          dynamics, full_episodes)
     except ValueError as e:
         _fail(e)
     typer.echo(f"total {time.perf_counter() - start:.0f} s")

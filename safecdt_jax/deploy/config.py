@@ -71,6 +71,11 @@ class DeployConfig:
             trained for exactly the forward pass the deployment uses (evaluation mode).
         clip_ctg: clip the rollout's cost-to-go at 0 once the budget is spent (True); False is
             OSRL's rule (it may go negative, which no training window contains).
+        stop_over_budget: the paper's "consistent runtime-budget protocol" (True): a wrapper
+            ends each episode after the step at which its cost first exceeds the budget B, so
+            a violating episode costs B + 1 (0/1 costs) and keeps the return it had made by
+            then. The paper's tables show it: BCQL and BEARL on CC1->CC2 cost 31.00 +- 0.00 at
+            B = 30 with VR 100%. False runs every episode to the time limit.
     """
 
     episodes: int = 50
@@ -103,13 +108,14 @@ class DeployConfig:
     lora_lr: float = 1e-4
     lora_dropout: bool = False
     clip_ctg: bool = True
+    stop_over_budget: bool = True
 
     def __post_init__(self) -> None:
         check.integers(self, "episodes", "stage_len", "window", "lora_steps", "lora_batch")
         check.integers(self, "horizon", optional=True)
         check.integers(self, "lambda_warmup", minimum=0)
         check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr")
-        check.booleans(self, "lora_dropout", "clip_ctg")
+        check.booleans(self, "lora_dropout", "clip_ctg", "stop_over_budget")
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")
         if not 1 <= self.momentum_factor <= self.momentum_max:

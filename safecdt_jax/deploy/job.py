@@ -193,9 +193,11 @@ def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: st
     rows = [dict(run["summary"], label=run_label(run, len(budgets), len(shifts)))
             for run in results["runs"]]
     timing = results["timing"]
+    protocol = (" (each ended at the first step over the budget, the paper's runtime budget)"
+                if results["deploy_config"].get("stop_over_budget") else " (full episodes)")
     header = (f"# {title}\n\n{results['source']} -> {results['target']}, "
-              f"{results['seeds']} seeds x {results['deploy_config']['episodes']} episodes; "
-              f"reward, cost and VR as mean ± std over seeds (population std); "
+              f"{results['seeds']} seeds x {results['deploy_config']['episodes']} episodes"
+              f"{protocol}; reward, cost and VR as mean ± std over seeds (population std); "
               f"deployment {timing['deploy_s']:.0f} s "
               f"({timing['env_steps_per_s']:,.0f} env steps/s).\n\n")
     written.append(write_text_atomic(out / "table.md", header + results_table(rows)))

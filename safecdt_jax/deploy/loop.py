@@ -133,7 +133,8 @@ def deploy_episodes(
         ctg, rtg = targets(cr, rr, budget, spec.reference_return)
         params = merge_lora(base_params, carry.lora, model_cfg)
         ep = cdt_episode(k_env, env, env_params, params, model_cfg, rtg, ctg,
-                         clip_ctg=cfg.clip_ctg, horizon=cfg.horizon)
+                         clip_ctg=cfg.clip_ctg, horizon=cfg.horizon,
+                         stop_cost=budget if cfg.stop_over_budget else None)
         buffer = buffer_add(carry.buffer, ep, ep["length"])
         h = carry.history
         history = {"costs": h["costs"].at[e].set(ep["cost"]),

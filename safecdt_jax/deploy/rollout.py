@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from safecdt_jax.envs.env import SafetyEnv
+from safecdt_jax.envs.rollout import policy_episode
 from safecdt_jax.envs.types import EnvParams
 from safecdt_jax.model.cdt import Params, newest_action
 from safecdt_jax.model.config import CDTConfig
@@ -87,6 +88,7 @@ def cdt_episode(
     *,
     clip_ctg: bool = True,
     horizon: int | None = None,
+    stop_cost=None,
 ) -> dict[str, jax.Array]:
     """Run one episode of the CDT with the given targets, T steps (default: the env's horizon).
 
@@ -101,38 +103,32 @@ def cdt_episode(
             section 1); False keeps OSRL's rule of letting it go negative.
         horizon: steps T to run (static); None = the env's time limit. A shorter horizon cuts
             the episode there (for tests and quick looks).
+        stop_cost: the runtime budget (cost units; traced scalar ok): the episode ends after
+            the step at which its cost first exceeds it, as the paper's budget wrapper ends it
+            (so a violating episode costs B + 1 with 0/1 costs). None: never stopped for cost.
 
     Returns a dict: per step `observations [T, obs]` (the observation the action was chosen
     from), `actions [T, act]`, `rewards [T]`, `costs [T]`, `returns_to_go [T]`, `costs_to_go [T]`
     (raw targets the model saw at each step); per episode `length` (int32 steps until done),
     `return` and `cost` (sums over the episode). Steps after `done` are zero and not counted.
     """
-    horizon = env.episode_length if horizon is None else horizon
-
-    def body(carry, t):
-        state, ctx, rtg, ctg, alive = carry
-        ctx = context_push(ctx, state.obs, rtg * cfg.reward_scale, ctg * cfg.cost_scale, t)
+    def act(carry, obs, t, _key):
+        ctx, rtg, ctg = carry
+        ctx = context_push(ctx, obs, rtg * cfg.reward_scale, ctg * cfg.cost_scale, t)
         action = context_action(params, cfg, ctx)
-        ctx = ctx._replace(actions=ctx.actions.at[-1].set(action))
-        nxt = env.step(state, action, env_params)
-        reward = jnp.where(alive, nxt.reward, 0.0)
-        cost = jnp.where(alive, nxt.cost, 0.0)
-        new_ctg = ctg - cost
-        new_ctg = jnp.maximum(new_ctg, 0.0) if clip_ctg else new_ctg
-        out = {"observations": state.obs, "actions": action, "rewards": reward, "costs": cost,
-               "returns_to_go": rtg, "costs_to_go": ctg, "alive": alive}
-        return (nxt, ctx, rtg - reward, new_ctg, alive & (nxt.done < 0.5)), out
+        return action, (ctx._replace(actions=ctx.actions.at[-1].set(action)), rtg, ctg)
 
-    state = env.reset(key, env_params)
-    carry = (state, context_init(cfg), jnp.float32(target_return), jnp.float32(target_cost),
-             jnp.bool_(True))
-    _, out = jax.lax.scan(body, carry, jnp.arange(horizon, dtype=jnp.int32))
-    alive = out.pop("alive")
-    out["observations"] = jnp.where(alive[:, None], out["observations"], 0.0)
-    out["actions"] = jnp.where(alive[:, None], out["actions"], 0.0)
-    out["length"] = alive.sum().astype(jnp.int32)
-    out["return"] = out["rewards"].sum()
-    out["cost"] = out["costs"].sum()
+    def observe(carry, reward, cost):
+        ctx, rtg, ctg = carry
+        new_ctg = jnp.maximum(ctg - cost, 0.0) if clip_ctg else ctg - cost
+        return ctx, rtg - reward, new_ctg
+
+    out = policy_episode(
+        env, env_params, key, act, observe,
+        (context_init(cfg), jnp.float32(target_return), jnp.float32(target_cost)),
+        record=lambda carry: {"returns_to_go": carry[1], "costs_to_go": carry[2]},
+        horizon=horizon, stop_cost=stop_cost)
+    out.pop("alive")
     return out
 
 

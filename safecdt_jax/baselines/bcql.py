@@ -1,0 +1,89 @@
+"""BCQ-Lagrangian (OSRL's `BCQL`): a VAE of the behaviour actions, a small perturbation actor on
+its samples, reward and cost double-ensemble critics, and a PID Lagrangian that penalises the
+actor's per-step cost value above the threshold.
+
+Each step: VAE -> reward critic -> cost critic -> actor -> soft target updates.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+from safecdt_jax.baselines.common import (
+    Algorithm,
+    TrainState,
+    Transitions,
+    adam_step,
+    init_state,
+    max_soft_clipped,
+    pid_step,
+    regress_critic,
+    repeat,
+    soft_update,
+    update_vae,
+)
+from safecdt_jax.baselines.config import BaselineConfig
+from safecdt_jax.baselines.networks import VAE, Perturbation, QEnsemble, double_min
+
+
+def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Algorithm:
+    """BCQL for observations of `obs_dim`, actions of `act_dim`, per-step cost threshold
+    `qc_thres` (`common.qc_threshold`)."""
+    actor = Perturbation(cfg.hidden, act_dim, cfg.phi)
+    critic = QEnsemble(cfg.hidden, 2 * cfg.num_q)
+    vae = VAE(cfg.vae_hidden, act_dim)
+    n = cfg.next_actions
+
+    def init(key: jax.Array) -> TrainState:
+        k_a, k_q, k_c, k_v, k_s = jax.random.split(key, 5)
+        obs, act = jnp.zeros((1, obs_dim)), jnp.zeros((1, act_dim))
+        params = {"actor": actor.init(k_a, obs, act), "critic": critic.init(k_q, obs, act),
+                  "cost_critic": critic.init(k_c, obs, act),
+                  "vae": vae.init(k_v, k_s, obs, act)}
+        lrs = {"actor": cfg.actor_lr, "critic": cfg.critic_lr, "cost_critic": cfg.critic_lr,
+               "vae": cfg.vae_lr}
+        return init_state(params, lrs, ("actor", "critic", "cost_critic"))
+
+    def policy(actor_params, vae_params, obs, key):
+        a_vae = vae.apply(vae_params, key, obs, method=VAE.sample)
+        return actor.apply(actor_params, obs, a_vae)
+
+    def update(state: TrainState, batch: Transitions, key: jax.Array):
+        k_vae, k_next, k_pi = jax.random.split(key, 3)
+        state, vae_loss = update_vae(state, vae, batch, k_vae, cfg.vae_lr, cfg.vae_beta)
+
+        next_obs = repeat(batch.next_obs, n)
+        next_act = policy(state.target["actor"], state.params["vae"], next_obs, k_next)
+        q_next = max_soft_clipped(critic.apply(state.target["critic"], next_obs, next_act),
+                                  cfg.num_q, cfg.lmbda)
+        y = cfg.reward_scale * batch.reward + cfg.gamma * (1.0 - batch.done) * q_next
+        state, q_loss = regress_critic(state, "critic", critic, batch, y, cfg.critic_lr)
+        qc_next = max_soft_clipped(critic.apply(state.target["cost_critic"], next_obs, next_act),
+                                   cfg.num_q, cfg.lmbda)
+        yc = cfg.cost_scale * batch.cost + cfg.gamma * qc_next  # no done mask, as OSRL
+        state, qc_loss = regress_critic(state, "cost_critic", critic, batch, yc, cfg.critic_lr)
+
+        def actor_loss(actor_params):
+            a = policy(actor_params, state.params["vae"], batch.obs, k_pi)
+            q = jnp.minimum(*double_min(critic.apply(state.params["critic"], batch.obs, a),
+                                        cfg.num_q))
+            qc = jnp.minimum(*double_min(
+                critic.apply(state.params["cost_critic"], batch.obs, a), cfg.num_q))
+            pid = pid_step(state.pid, qc, qc_thres, cfg.pid)
+            return -q.mean() + jnp.mean(pid.lam * (qc - qc_thres)), (pid, qc.mean())
+
+        state, pi_loss, (pid, qc_pi) = adam_step(state, "actor", actor_loss, cfg.actor_lr)
+        target = {name: soft_update(state.target[name], state.params[name], cfg.tau)
+                  for name in state.target}
+        state = state._replace(target=target, pid=pid, step=state.step + 1)
+        return state, {"vae_loss": vae_loss, "critic_loss": q_loss, "cost_critic_loss": qc_loss,
+                       "actor_loss": pi_loss, "qc": qc_pi, "lambda": pid.lam}
+
+    def act(params: dict, obs: jax.Array, key: jax.Array) -> jax.Array:
+        return policy(params["actor"], params["vae"], obs, key)
+
+    return Algorithm(init, update, act)
+
+
+__all__ = ["make"]
