@@ -8,7 +8,8 @@ alternately (A B A B). It imports only the peers' packages, never this project. 
 stderr instead, so it cannot corrupt the protocol).
 
 Commands: `versions`, `env_steps` (Safety-Gymnasium), `train`, `infer`, `flops`, `gemm` (OSRL's
-CDT in PyTorch), `deploy` (OSRL's own `CDTTrainer.evaluate` over Safety-Gymnasium).
+CDT in PyTorch), `deploy` (OSRL's own `CDTTrainer.evaluate` over Safety-Gymnasium),
+`baseline_train` (OSRL's BCQL, BEARL and CPQ).
 """
 
 import dataclasses
@@ -145,6 +146,56 @@ def train(batch: int, steps: int, obs_dim: int, act_dim: int, episode_len: int) 
             "params": sum(p.numel() for p in model.parameters())}
 
 
+def _baseline(algo: str, obs_dim: int, act_dim: int, episode_len: int):
+    """OSRL's BCQL, BEARL or CPQ with the networks and rates of its Safety-Gymnasium configs."""
+    key = (algo, obs_dim, act_dim, episode_len)
+    if key not in _CACHE:
+        import torch
+        from osrl.algorithms import BCQL, BEARL, CPQ, BCQLTrainer, BEARLTrainer, CPQTrainer
+
+        torch.manual_seed(0)
+        common = dict(state_dim=obs_dim, action_dim=act_dim, max_action=1.0,
+                      a_hidden_sizes=[256, 256], c_hidden_sizes=[256, 256],
+                      vae_hidden_sizes=400, sample_action_num=10, gamma=0.99, tau=0.005,
+                      num_q=2, num_qc=2, cost_limit=30, episode_len=episode_len, device="cpu")
+        if algo == "bcql":
+            model = BCQL(**common, phi=0.05, lmbda=0.75, beta=0.5, PID=[0.1, 0.003, 0.001])
+            trainer = BCQLTrainer(model, None, actor_lr=1e-3, critic_lr=1e-3, vae_lr=1e-3,
+                                  reward_scale=0.1, cost_scale=1.0, device="cpu")
+        elif algo == "bearl":
+            model = BEARL(**common, beta=0.5, lmbda=0.75, mmd_sigma=50, target_mmd_thresh=0.05,
+                          num_samples_mmd_match=10, PID=[0.1, 0.003, 0.001],
+                          kernel="gaussian", start_update_policy_step=0)
+            trainer = BEARLTrainer(model, None, actor_lr=1e-3, critic_lr=1e-3, alpha_lr=1e-3,
+                                   vae_lr=1e-3, reward_scale=0.1, cost_scale=1.0, device="cpu")
+        else:
+            common.update(num_q=2, num_qc=2)
+            model = CPQ(**common, beta=0.5, qc_scalar=1.5)
+            trainer = CPQTrainer(model, None, actor_lr=1e-4, critic_lr=1e-3, alpha_lr=1e-4,
+                                 vae_lr=1e-3, reward_scale=0.1, cost_scale=1.0, device="cpu")
+        _CACHE[key] = (model, trainer)
+    return _CACHE[key]
+
+
+def baseline_train(algo: str, batch: int, steps: int, obs_dim: int, act_dim: int,
+                   episode_len: int) -> dict:
+    """Seconds of `steps` calls of OSRL's `train_one_step` of `algo` on a fixed random batch of
+    transitions (sampling them is not included; on our side it is, inside the scan)."""
+    import torch
+
+    model, trainer = _baseline(algo, obs_dim, act_dim, episode_len)
+    g = torch.Generator().manual_seed(batch)
+    data = [torch.randn(batch, obs_dim, generator=g), torch.randn(batch, obs_dim, generator=g),
+            torch.rand(batch, act_dim, generator=g) * 2 - 1,
+            torch.rand(batch, generator=g) * 0.1,
+            (torch.rand(batch, generator=g) < 0.05).float(), torch.zeros(batch)]
+    t = time.perf_counter()
+    for _ in range(steps):
+        trainer.train_one_step(*data)
+    return {"seconds": time.perf_counter() - t, "steps": steps,
+            "params": sum(p.numel() for p in model.parameters())}
+
+
 def infer(batch: int, calls: int, obs_dim: int, act_dim: int, episode_len: int) -> dict:
     """Seconds of `calls` evaluation forwards on a full 10-step window, as OSRL's rollout does.
 
@@ -250,7 +301,8 @@ def deploy(task: str, seeds: int, episodes: int, target_return: float, target_co
             "mean_cost": float(np.mean(costs))}
 
 
-COMMANDS = {f.__name__: f for f in (versions, env_steps, train, infer, flops, gemm, deploy)}
+COMMANDS = {f.__name__: f for f in (versions, env_steps, train, infer, flops, gemm, deploy,
+                                     baseline_train)}
 
 
 def main() -> None:

@@ -113,12 +113,13 @@ _OSRL: dict[str, dict[str, Any]] = {
     "cpq": dict(steps=100_000, actor_lr=1e-4, alpha_lr=1e-4),
 }
 
-# `cpu`: OSRL's networks and rules with fewer updates, sized from the measured step times on a
-# 2-core CPU so that the three algorithms x 3 seeds on one source task train in about 30 min
-# (docs/BASELINES.md). `tiny`: every code path in seconds, for tests.
+# `cpu`: OSRL's networks and rules with 1,500 updates each, sized from the measured step times
+# (BCQL 200 ms, BEARL 264 ms, CPQ 107 ms per update on one core, about 15 GFLOP for BCQL: the
+# updates are matmul-bound), so that the three algorithms x 3 seeds on one source task train
+# in about 30 min on a 2-core CPU (docs/BASELINES.md). `tiny`: every code path in seconds.
 _SIZES: dict[str, dict[str, Any]] = {
     "osrl": {},
-    "cpu": dict(steps=3_000, chunk=250),
+    "cpu": dict(steps=1_500, chunk=250),
     "tiny": dict(steps=20, batch=16, chunk=10, hidden=16, vae_hidden=16, next_actions=3),
 }
 PRESET_NAMES = tuple(_SIZES)
@@ -131,8 +132,6 @@ def preset(algo: str, name: str = "cpu", **overrides: Any) -> BaselineConfig:
     if name not in _SIZES:
         raise ValueError(f"unknown baseline preset {name!r}; choose one of {', '.join(_SIZES)}")
     fields = {"algo": algo} | _OSRL[algo] | _SIZES[name]
-    if name == "cpu" and algo == "bearl":
-        fields["steps"] = 3 * fields["steps"]  # OSRL's 3:1 ratio of BEARL's updates to BCQL's
     return BaselineConfig(**(fields | overrides))
 
 
