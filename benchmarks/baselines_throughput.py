@@ -76,7 +76,7 @@ def main() -> None:
         from benchmarks.peers import setup
 
         setup.ensure("osrl")
-        osrl = Peer("osrl", OUT / "baselines_peer.log")
+        osrl = Peer("osrl", setup.ROOT / "workers.log")  # what the peer prints (git-ignored)
     per_update, seeds_rows = [], []
     for algo in algos:
         ours = _our_runner(algo, args.steps, None)

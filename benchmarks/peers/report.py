@@ -221,5 +221,18 @@ def render(p: dict) -> str:
     if len(p["sides"]) == 1:
         parts.append("No accelerator was visible to JAX on this run, so there are no GPU "
                      "tables; on a machine with one, the same command adds them.")
+    parts.append(_baselines())
     parts.append(CAVEATS)
     return "\n\n".join(parts) + "\n"
+
+
+def _baselines() -> str:
+    """The offline baselines' section: the last `benchmarks.baselines_throughput` tables."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "results" / "baselines_throughput.md"
+    if not path.exists():
+        return ("## Offline baselines (BCQL, BEARL, CPQ) against OSRL\n\nNot measured yet: "
+                "`python -m benchmarks.baselines_throughput`.")
+    body = path.read_text().split("\n", 1)[1].strip()  # without its own title
+    return "## Offline baselines (BCQL, BEARL, CPQ) against OSRL\n\n" + body

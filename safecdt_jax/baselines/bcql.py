@@ -15,16 +15,16 @@ from safecdt_jax.baselines.common import (
     TrainState,
     Transitions,
     adam_step,
-    init_state,
-    max_soft_clipped,
+    double_q,
+    init_networks,
     pid_step,
-    regress_critic,
     repeat,
-    soft_update,
+    soft_update_targets,
+    update_double_critics,
     update_vae,
 )
 from safecdt_jax.baselines.config import BaselineConfig
-from safecdt_jax.baselines.networks import VAE, Perturbation, QEnsemble, double_min
+from safecdt_jax.baselines.networks import VAE, Perturbation, QEnsemble
 
 
 def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Algorithm:
@@ -36,14 +36,7 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
     n = cfg.next_actions
 
     def init(key: jax.Array) -> TrainState:
-        k_a, k_q, k_c, k_v, k_s = jax.random.split(key, 5)
-        obs, act = jnp.zeros((1, obs_dim)), jnp.zeros((1, act_dim))
-        params = {"actor": actor.init(k_a, obs, act), "critic": critic.init(k_q, obs, act),
-                  "cost_critic": critic.init(k_c, obs, act),
-                  "vae": vae.init(k_v, k_s, obs, act)}
-        lrs = {"actor": cfg.actor_lr, "critic": cfg.critic_lr, "cost_critic": cfg.critic_lr,
-               "vae": cfg.vae_lr}
-        return init_state(params, lrs, ("actor", "critic", "cost_critic"))
+        return init_networks(key, cfg, actor, critic, vae, obs_dim, act_dim, True)
 
     def policy(actor_params, vae_params, obs, key):
         a_vae = vae.apply(vae_params, key, obs, method=VAE.sample)
@@ -55,28 +48,19 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
 
         next_obs = repeat(batch.next_obs, n)
         next_act = policy(state.target["actor"], state.params["vae"], next_obs, k_next)
-        q_next = max_soft_clipped(critic.apply(state.target["critic"], next_obs, next_act),
-                                  cfg.num_q, cfg.lmbda)
-        y = cfg.reward_scale * batch.reward + cfg.gamma * (1.0 - batch.done) * q_next
-        state, q_loss = regress_critic(state, "critic", critic, batch, y, cfg.critic_lr)
-        qc_next = max_soft_clipped(critic.apply(state.target["cost_critic"], next_obs, next_act),
-                                   cfg.num_q, cfg.lmbda)
-        yc = cfg.cost_scale * batch.cost + cfg.gamma * qc_next  # no done mask, as OSRL
-        state, qc_loss = regress_critic(state, "cost_critic", critic, batch, yc, cfg.critic_lr)
+        state, q_loss, qc_loss = update_double_critics(state, critic, batch, next_obs, next_act,
+                                                       cfg)
 
         def actor_loss(actor_params):
             a = policy(actor_params, state.params["vae"], batch.obs, k_pi)
-            q = jnp.minimum(*double_min(critic.apply(state.params["critic"], batch.obs, a),
-                                        cfg.num_q))
-            qc = jnp.minimum(*double_min(
-                critic.apply(state.params["cost_critic"], batch.obs, a), cfg.num_q))
+            q = double_q(critic, state.params["critic"], batch.obs, a, cfg.num_q)
+            qc = double_q(critic, state.params["cost_critic"], batch.obs, a, cfg.num_q)
             pid = pid_step(state.pid, qc, qc_thres, cfg.pid)
             return -q.mean() + jnp.mean(pid.lam * (qc - qc_thres)), (pid, qc.mean())
 
         state, pi_loss, (pid, qc_pi) = adam_step(state, "actor", actor_loss, cfg.actor_lr)
-        target = {name: soft_update(state.target[name], state.params[name], cfg.tau)
-                  for name in state.target}
-        state = state._replace(target=target, pid=pid, step=state.step + 1)
+        state = state._replace(target=soft_update_targets(state, cfg.tau), pid=pid,
+                               step=state.step + 1)
         return state, {"vae_loss": vae_loss, "critic_loss": q_loss, "cost_critic_loss": qc_loss,
                        "actor_loss": pi_loss, "qc": qc_pi, "lambda": pid.lam}
 

@@ -15,13 +15,13 @@ from safecdt_jax.baselines.common import (
     TrainState,
     Transitions,
     adam_step,
-    init_state,
-    max_soft_clipped,
+    double_q,
+    init_networks,
     mmd_gaussian,
     pid_step,
-    regress_critic,
     repeat,
-    soft_update,
+    soft_update_targets,
+    update_double_critics,
     update_vae,
 )
 from safecdt_jax.baselines.config import BaselineConfig
@@ -29,7 +29,6 @@ from safecdt_jax.baselines.networks import (
     VAE,
     QEnsemble,
     SquashedGaussian,
-    double_min,
     squashed_sample,
 )
 
@@ -43,14 +42,7 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
     n = cfg.next_actions
 
     def init(key: jax.Array) -> TrainState:
-        k_a, k_q, k_c, k_v, k_s = jax.random.split(key, 5)
-        obs, act = jnp.zeros((1, obs_dim)), jnp.zeros((1, act_dim))
-        params = {"actor": actor.init(k_a, obs), "critic": critic.init(k_q, obs, act),
-                  "cost_critic": critic.init(k_c, obs, act),
-                  "vae": vae.init(k_v, k_s, obs, act)}
-        lrs = {"actor": cfg.actor_lr, "critic": cfg.critic_lr, "cost_critic": cfg.critic_lr,
-               "vae": cfg.vae_lr}
-        return init_state(params, lrs, ("actor", "critic", "cost_critic"))
+        return init_networks(key, cfg, actor, critic, vae, obs_dim, act_dim, False)
 
     def update(state: TrainState, batch: Transitions, key: jax.Array):
         k_vae, k_next, k_dec, k_pi = jax.random.split(key, 4)
@@ -58,14 +50,8 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
 
         next_obs = repeat(batch.next_obs, n)
         next_act, _, _ = squashed_sample(k_next, *actor.apply(state.target["actor"], next_obs))
-        q_next = max_soft_clipped(critic.apply(state.target["critic"], next_obs, next_act),
-                                  cfg.num_q, cfg.lmbda)
-        y = cfg.reward_scale * batch.reward + cfg.gamma * (1.0 - batch.done) * q_next
-        state, q_loss = regress_critic(state, "critic", critic, batch, y, cfg.critic_lr)
-        qc_next = max_soft_clipped(critic.apply(state.target["cost_critic"], next_obs, next_act),
-                                   cfg.num_q, cfg.lmbda)
-        yc = cfg.cost_scale * batch.cost + cfg.gamma * qc_next  # no done mask, as OSRL
-        state, qc_loss = regress_critic(state, "cost_critic", critic, batch, yc, cfg.critic_lr)
+        state, q_loss, qc_loss = update_double_critics(state, critic, batch, next_obs, next_act,
+                                                       cfg)
 
         obs_n = repeat(batch.obs, n)
         behaviour_raw = jax.lax.stop_gradient(
@@ -76,10 +62,8 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
             act, raw, _ = squashed_sample(k_pi, *actor.apply(actor_params, obs_n))
             mmd = mmd_gaussian(behaviour_raw, raw, cfg.mmd_sigma)
             a0 = act[:, 0]  # the values are read at the first actor sample, as OSRL does
-            q = jnp.minimum(*double_min(critic.apply(state.params["critic"], batch.obs, a0),
-                                        cfg.num_q))
-            qc = jnp.minimum(*double_min(
-                critic.apply(state.params["cost_critic"], batch.obs, a0), cfg.num_q))
+            q = double_q(critic, state.params["critic"], batch.obs, a0, cfg.num_q)
+            qc = double_q(critic, state.params["cost_critic"], batch.obs, a0, cfg.num_q)
             pid = pid_step(state.pid, qc, qc_thres, cfg.pid)
             loss = (jnp.mean(-q + alpha * (mmd - cfg.mmd_threshold))
                     + jnp.mean(pid.lam * (qc - qc_thres)))
@@ -88,9 +72,8 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
         state, pi_loss, (pid, mmd, qc_pi) = adam_step(state, "actor", actor_loss, cfg.actor_lr)
         log_alpha = jnp.clip(state.log_alpha + cfg.alpha_lr * alpha * (mmd - cfg.mmd_threshold),
                              -5.0, 5.0)
-        target = {name: soft_update(state.target[name], state.params[name], cfg.tau)
-                  for name in state.target}
-        state = state._replace(target=target, pid=pid, log_alpha=log_alpha, step=state.step + 1)
+        state = state._replace(target=soft_update_targets(state, cfg.tau), pid=pid,
+                               log_alpha=log_alpha, step=state.step + 1)
         return state, {"vae_loss": vae_loss, "critic_loss": q_loss, "cost_critic_loss": qc_loss,
                        "actor_loss": pi_loss, "qc": qc_pi, "lambda": pid.lam, "mmd": mmd,
                        "alpha": jnp.exp(log_alpha)}

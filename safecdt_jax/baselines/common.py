@@ -201,12 +201,58 @@ def regress_critic(state: TrainState, name: str, critic, batch: Transitions, y: 
     return state, loss
 
 
+def init_networks(key: jax.Array, cfg, actor, critic, vae, obs_dim: int, act_dim: int,
+                  actor_reads_action: bool) -> TrainState:
+    """Fresh `TrainState` of an actor, a reward and a cost critic (the same `critic` module,
+    two parameter sets) and the behaviour VAE, with Adam states at `cfg`'s rates and target
+    copies of actor and critics. `actor_reads_action`: the actor takes (obs, action) (BCQ's
+    perturbation) rather than obs alone."""
+    k_a, k_q, k_c, k_v, k_s = jax.random.split(key, 5)
+    obs, act = jnp.zeros((1, obs_dim)), jnp.zeros((1, act_dim))
+    params = {"actor": actor.init(k_a, obs, act) if actor_reads_action else actor.init(k_a, obs),
+              "critic": critic.init(k_q, obs, act), "cost_critic": critic.init(k_c, obs, act),
+              "vae": vae.init(k_v, k_s, obs, act)}
+    lrs = {"actor": cfg.actor_lr, "critic": cfg.critic_lr, "cost_critic": cfg.critic_lr,
+           "vae": cfg.vae_lr}
+    return init_state(params, lrs, ("actor", "critic", "cost_critic"))
+
+
+def double_q(critic, params, obs: jax.Array, action: jax.Array, num: int) -> jax.Array:
+    """min(Q1, Q2) of a double ensemble (`QEnsemble` of 2 num heads) at (obs, action)."""
+    return jnp.minimum(*double_min(critic.apply(params, obs, action), num))
+
+
+def update_double_critics(state: TrainState, critic, batch: Transitions, next_obs: jax.Array,
+                          next_act: jax.Array, cfg) -> tuple[TrainState, jax.Array, jax.Array]:
+    """BCQL's and BEARL's critic steps: targets from the n sampled next actions [B, n, act]
+    at the repeated next states (`max_soft_clipped` of the target ensembles), the reward one
+    masked by done and the cost one not (as OSRL), each critic one Adam step. Returns (state,
+    reward-critic loss, cost-critic loss)."""
+    q_next = max_soft_clipped(critic.apply(state.target["critic"], next_obs, next_act),
+                              cfg.num_q, cfg.lmbda)
+    y = cfg.reward_scale * batch.reward + cfg.gamma * (1.0 - batch.done) * q_next
+    state, q_loss = regress_critic(state, "critic", critic, batch, y, cfg.critic_lr)
+    qc_next = max_soft_clipped(critic.apply(state.target["cost_critic"], next_obs, next_act),
+                               cfg.num_q, cfg.lmbda)
+    yc = cfg.cost_scale * batch.cost + cfg.gamma * qc_next
+    state, qc_loss = regress_critic(state, "cost_critic", critic, batch, yc, cfg.critic_lr)
+    return state, q_loss, qc_loss
+
+
+def soft_update_targets(state: TrainState, tau: float) -> dict:
+    """Every target network moved `tau` toward its online network."""
+    return {name: soft_update(state.target[name], state.params[name], tau)
+            for name in state.target}
+
+
 __all__ = [
     "PID",
     "Algorithm",
     "TrainState",
     "Transitions",
     "adam_step",
+    "double_q",
+    "init_networks",
     "init_state",
     "max_soft_clipped",
     "mmd_gaussian",
@@ -217,7 +263,9 @@ __all__ = [
     "sample_batch",
     "soft_clipped",
     "soft_update",
+    "soft_update_targets",
     "transitions",
+    "update_double_critics",
     "update_vae",
     "vae_loss",
 ]

@@ -116,7 +116,8 @@ _OSRL: dict[str, dict[str, Any]] = {
 # `cpu`: OSRL's networks and rules with 1,500 updates each, sized from the measured step times
 # (BCQL 200 ms, BEARL 264 ms, CPQ 107 ms per update on one core, about 15 GFLOP for BCQL: the
 # updates are matmul-bound), so that the three algorithms x 3 seeds on one source task train
-# in about 30 min on a 2-core CPU (docs/BASELINES.md). `tiny`: every code path in seconds.
+# in about 30 min on a 2-core CPU, 43 on one core (docs/BASELINES.md). `tiny`: every code path
+# in seconds, for tests.
 _SIZES: dict[str, dict[str, Any]] = {
     "osrl": {},
     "cpu": dict(steps=1_500, chunk=250),

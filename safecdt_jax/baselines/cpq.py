@@ -18,10 +18,10 @@ from safecdt_jax.baselines.common import (
     TrainState,
     Transitions,
     adam_step,
-    init_state,
+    init_networks,
     regress_critic,
     repeat,
-    soft_update,
+    soft_update_targets,
     update_vae,
 )
 from safecdt_jax.baselines.config import BaselineConfig
@@ -43,14 +43,7 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
     n = cfg.next_actions
 
     def init(key: jax.Array) -> TrainState:
-        k_a, k_q, k_c, k_v, k_s = jax.random.split(key, 5)
-        obs, act = jnp.zeros((1, obs_dim)), jnp.zeros((1, act_dim))
-        params = {"actor": actor.init(k_a, obs), "critic": critic.init(k_q, obs, act),
-                  "cost_critic": critic.init(k_c, obs, act),
-                  "vae": vae.init(k_v, k_s, obs, act)}
-        lrs = {"actor": cfg.actor_lr, "critic": cfg.critic_lr, "cost_critic": cfg.critic_lr,
-               "vae": cfg.vae_lr}
-        return init_state(params, lrs, ("actor", "critic", "cost_critic"))
+        return init_networks(key, cfg, actor, critic, vae, obs_dim, act_dim, False)
 
     def update(state: TrainState, batch: Transitions, key: jax.Array):
         k_vae, k_next, k_ood, k_pi = jax.random.split(key, 4)
@@ -96,9 +89,8 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
             return -jnp.mean(safe * q), qc.mean()
 
         state, pi_loss, qc_pi = adam_step(state, "actor", actor_loss, cfg.actor_lr)
-        target = {name: soft_update(state.target[name], state.params[name], cfg.tau)
-                  for name in state.target}
-        state = state._replace(target=target, log_alpha=log_alpha, step=state.step + 1)
+        state = state._replace(target=soft_update_targets(state, cfg.tau), log_alpha=log_alpha,
+                               step=state.step + 1)
         return state, {"vae_loss": vae_loss, "critic_loss": q_loss, "cost_critic_loss": qc_loss,
                        "actor_loss": pi_loss, "qc": qc_pi, "qc_ood": qc_ood,
                        "alpha": jnp.exp(log_alpha)}
