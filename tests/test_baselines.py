@@ -214,3 +214,32 @@ def test_runner_checkpoints_reuses_and_evaluates_under_the_runtime_budget(tmp_pa
     returns, costs = evaluate_trained(first, "PointCircle1", episodes=2, stop_cost=2.0)
     assert returns.shape == costs.shape == (2, 2)
     assert np.all(costs <= 3.0)  # ended at the first step over the budget
+
+
+def test_baselines_command_writes_the_table_scatter_and_results(tiny_run, tmp_path):
+    """`safecdt-jax baselines` end to end on the tiny data and preset: one line per method in
+    the paper's Table 7 layout, the paper's numbers beside ours, reused checkpoints on rerun."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from safecdt_jax.cli import app
+
+    data, _, _ = tiny_run
+    args = ["baselines", "--pair", "PC1-PC2", "--algos", "cpq,bc_safe", "--seeds", "2",
+            "--preset", "tiny", "--episodes", "2", "--steps", "10", "--data", str(data),
+            "--out", str(tmp_path)]
+    res = CliRunner().invoke(app, args)
+    assert res.exit_code == 0, res.output
+    table = (tmp_path / "baselines.md").read_text()
+    assert "| PC1→PC2 | CPQ |" in table and "-1.05 ± 2.69" in table  # the paper's CPQ row
+    assert "| PC1→PC2 | BC-Safe |" in table
+    assert (tmp_path / "baselines_scatter.png").stat().st_size > 0
+    results = json.loads((tmp_path / "baselines.json").read_text())
+    cpq_run = results["methods"][0]
+    assert np.asarray(cpq_run["costs"]).shape == (2, 2)
+    assert np.all(np.asarray(cpq_run["costs"]) <= 31)  # the runtime budget
+    again = CliRunner().invoke(app, args)
+    assert again.exit_code == 0 and "(reused)" in (tmp_path / "baselines.md").read_text()
+    bad = CliRunner().invoke(app, ["baselines", "--pair", "XX-YY", "--out", str(tmp_path)])
+    assert bad.exit_code == 1 and "unknown pair" in bad.output

@@ -40,6 +40,12 @@ PAPER_TABLE7: dict[str, dict[str, tuple[float, float, float, float, float]]] = {
                 "bcql": (16.89, 3.11, 17.22, 7.93, 51.7), "cpq": (-1.05, 2.69, 20.98, 17.49, 71.7)},
 }
 
+# The paper's Safe-CDT rows at B = 30 (Table 4 for CG1-CG2, 15 seeds; Table 1 for the others,
+# 3 seeds), shown beside a `run`'s Safe-CDT row.
+PAPER_SAFE_CDT = {"CG1-CG2": (-15.93, 2.01, 8.56, 2.21, 14.4),
+                  "CC1-CC2": (0.77, 0.29, 9.05, 1.60, 24.7),
+                  "PC1-PC2": (-12.32, 3.30, 19.21, 3.34, 56.0)}
+
 
 def parse_algos(text: str) -> list[str]:
     """'bcql,cpq' -> ['bcql', 'cpq']; ValueError names an unknown algorithm."""
@@ -134,10 +140,13 @@ def _cell(mean: float, std: float) -> str:
 
 
 def baselines_table(results: dict[str, Any], extra: Sequence[dict] = ()) -> str:
-    """The paper's Table 7 rows for our runs, with the paper's reward, cost and VR beside."""
+    """The paper's Table 7 rows for our runs, with the paper's reward, cost and VR beside (for a
+    Safe-CDT row from a `run`, the paper's Table 4 / Table 1 row)."""
     from safecdt_jax.report.tables import markdown_table
 
-    paper = PAPER_TABLE7.get(results["pair"], {})
+    paper = PAPER_TABLE7.get(results["pair"], {}) | (
+        {"safe_cdt": PAPER_SAFE_CDT[results["pair"]]} if results["pair"] in PAPER_SAFE_CDT
+        else {})
     rows = []
     for m in list(results["methods"]) + list(extra):
         s = m["summary"]
@@ -204,5 +213,5 @@ def write_baselines(out: str | os.PathLike, results: dict[str, Any]) -> list[Pat
     ]
 
 
-__all__ = ["ALL_ALGOS", "PAPER_TABLE7", "baselines_table", "parse_algos", "plot_scatter",
-           "run_baselines", "safe_cdt_row", "summarize", "write_baselines"]
+__all__ = ["ALL_ALGOS", "PAPER_SAFE_CDT", "PAPER_TABLE7", "baselines_table", "parse_algos",
+           "plot_scatter", "run_baselines", "safe_cdt_row", "summarize", "write_baselines"]
