@@ -50,7 +50,8 @@ def policy_episode(env: SafetyEnv, params: EnvParams, key: jax.Array, act: Calla
 
     Returns per step `observations [T, obs]` (what the action was chosen from), `actions`,
     `rewards`, `costs`, `alive` and whatever `record(policy_state)` (read before `observe`)
-    adds; padding after the end is zeroed. Per episode `length` (int32), `return`, `cost`.
+    adds; observations, actions, rewards and costs are 0 after the end (recorded fields are
+    not masked). Per episode `length` (int32 steps), `return` and `cost` (sums).
     """
     horizon = env.episode_length if horizon is None else horizon
     stop = jnp.float32(jnp.inf if stop_cost is None else stop_cost)
