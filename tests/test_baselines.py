@@ -211,6 +211,12 @@ def test_runner_checkpoints_reuses_and_evaluates_under_the_runtime_budget(tmp_pa
     with pytest.raises(ValueError, match="another config"):
         train_baseline(preset("bcql", "tiny", cost_limit=3.0), data, [0, 1], tmp_path / "ckpt",
                        progress=False)
+    # A longer run resumes the saved one and ends with the bits of an uninterrupted run.
+    longer = preset("bcql", "tiny", cost_limit=2.0, steps=30)
+    extended = train_baseline(longer, data, [0, 1], tmp_path / "ckpt", progress=False)
+    fresh = train_baseline(longer, data, [0, 1], None, progress=False)
+    assert not extended.reused and extended.history["critic_loss"].shape == (2, 3)
+    jax.tree.map(np.testing.assert_array_equal, extended.params, fresh.params)
     returns, costs = evaluate_trained(first, "PointCircle1", episodes=2, stop_cost=2.0)
     assert returns.shape == costs.shape == (2, 2)
     assert np.all(costs <= 3.0)  # ended at the first step over the budget

@@ -79,6 +79,15 @@ def _act_fn(cfg: BaselineConfig, obs_dim: int, act_dim: int, horizon: int,
     return act
 
 
+def _same_run(saved: dict, meta: dict, done: int, n_chunks: int) -> dict[str, bool]:
+    """Which parts of a saved run's metadata match the requested run: every entry equal,
+    except that the saved run may have fewer updates (it is then resumed and extended)."""
+    same = {k: saved.get(k) == v for k, v in meta.items()}
+    config = dict(saved.get("config", {}), steps=meta["config"]["steps"])
+    same["config"] = config == meta["config"] and done <= n_chunks
+    return same
+
+
 def train_baseline(cfg: BaselineConfig, data: Dataset, seeds: Sequence[int],
                    ckpt: str | os.PathLike | None = None, overwrite: bool = False,
                    progress: bool = True) -> Trained:
@@ -86,8 +95,9 @@ def train_baseline(cfg: BaselineConfig, data: Dataset, seeds: Sequence[int],
     `cfg.chunk` steps (the bits of one uninterrupted scan, `train.make_train`).
 
     With `ckpt`, the state is saved after every chunk; a finished run there with the same
-    config, data and seeds is loaded instead of retrained, an unfinished one resumed. A
-    checkpoint of another config, data or seeds raises ValueError unless `overwrite`.
+    config, data and seeds is loaded instead of retrained, an unfinished or shorter one resumed
+    (and extended to `cfg.steps`). A checkpoint of another config, data or seeds (or of more
+    updates) raises ValueError unless `overwrite`.
     """
     from safecdt_jax.pretrain.checkpoint import _manager, checkpoint_steps
 
@@ -111,7 +121,7 @@ def train_baseline(cfg: BaselineConfig, data: Dataset, seeds: Sequence[int],
         with _manager(path, read_only=True) as mngr:
             saved = mngr.restore(steps[-1], args=ocp.args.Composite(
                 meta=ocp.args.JsonRestore()))["meta"]
-            same = {k: saved.get(k) == v for k, v in meta.items()}
+            same = _same_run(saved, meta, steps[-1], n_chunks)
             if not all(same.values()) and not overwrite:
                 differs = ", ".join(k for k, ok in same.items() if not ok)
                 raise ValueError(f"{path} holds a {cfg.algo} run with another {differs}; "
