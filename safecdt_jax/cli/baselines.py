@@ -41,11 +41,9 @@ def baselines(
     try:
         names = parse_algos(algos)
         folder = out if out is not None else Path("runs") / "baselines" / pair
-        results = run_baselines(pair, names, seeds, budget, preset, episodes, folder,
-                                data_path=data, steps=steps,
-                                stop_over_budget=not full_episodes, overwrite=overwrite)
+        run_baselines(pair, names, seeds, budget, preset, episodes, folder, data_path=data,
+                      steps=steps, stop_over_budget=not full_episodes, overwrite=overwrite)
     except ValueError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
     typer.echo((folder / "baselines.md").read_text())
-    del results
