@@ -137,12 +137,13 @@ def certificate(costs_by_condition: Mapping[float, Sequence[float]], budget: flo
                                             sufficient_margin(sigma, episodes, alpha),
                                             strict=True)]
     sigma_max = float(sigma.max())
+    certified = certified_budget(cs, phi, sigma, episodes, alpha, kappa)
     return {"budget": budget, "episodes": episodes, "alpha": alpha, "kappa": kappa,
             "sigma_estimator": "sample std (ddof 1)", "conditions": rows,
             "critical_budget": b_star, "critical_condition": c_dagger, "sigma_max": sigma_max,
-            "certified_budget": certified_budget(cs, phi, sigma, episodes, alpha, kappa),
+            "certified_budget": certified,
             "thm43_any_violation_bound": threshold_bound(budget, b_star, sigma_max, episodes),
-            "certified": budget >= certified_budget(cs, phi, sigma, episodes, alpha, kappa)}
+            "certified": budget >= certified}
 
 
 def costs_by_ctg(results: Mapping[str, Any], budget: float | None = None,

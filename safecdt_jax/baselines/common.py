@@ -102,11 +102,15 @@ def repeat(x: jax.Array, n: int) -> jax.Array:
     return jnp.repeat(x[:, None], n, axis=1)
 
 
+def gaussian_kl(mu: jax.Array, log_std: jax.Array) -> jax.Array:
+    """KL(N(mu, exp(log_std)^2) || N(0, 1)) per element, nats."""
+    return -0.5 * (1.0 + 2.0 * log_std - mu**2 - jnp.exp(2.0 * log_std))
+
+
 def vae_loss(recon: jax.Array, action: jax.Array, mu: jax.Array, log_std: jax.Array,
              beta: float) -> jax.Array:
     """MSE(recon, action) + beta KL(q(z | s, a) || N(0, I)), the KL averaged over elements."""
-    kl = -0.5 * (1.0 + 2.0 * log_std - mu**2 - jnp.exp(2.0 * log_std))
-    return jnp.mean((recon - action) ** 2) + beta * jnp.mean(kl)
+    return jnp.mean((recon - action) ** 2) + beta * jnp.mean(gaussian_kl(mu, log_std))
 
 
 def mmd_gaussian(x: jax.Array, y: jax.Array, sigma: float) -> jax.Array:
@@ -252,6 +256,7 @@ __all__ = [
     "Transitions",
     "adam_step",
     "double_q",
+    "gaussian_kl",
     "init_networks",
     "init_state",
     "max_soft_clipped",

@@ -18,6 +18,7 @@ from safecdt_jax.baselines.common import (
     TrainState,
     Transitions,
     adam_step,
+    gaussian_kl,
     init_networks,
     regress_critic,
     repeat,
@@ -61,8 +62,7 @@ def make(cfg: BaselineConfig, obs_dim: int, act_dim: int, qc_thres: float) -> Al
         sampled, _, _ = squashed_sample(k_ood, *actor.apply(state.params["actor"], obs_n))
         sampled = jax.lax.stop_gradient(sampled)
         mu, log_std = vae.apply(state.params["vae"], obs_n, sampled, method=VAE.encode)
-        kl = jnp.mean(-0.5 * (1.0 + 2.0 * log_std - mu**2 - jnp.exp(2.0 * log_std)), -1)
-        mask = ood_mask(kl, cfg.ood_quantile)
+        mask = ood_mask(gaussian_kl(mu, log_std).mean(-1), cfg.ood_quantile)
         yc = jax.lax.stop_gradient(cfg.cost_scale * batch.cost + cfg.gamma * qc_next)
         alpha = jnp.exp(state.log_alpha)
 

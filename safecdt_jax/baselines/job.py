@@ -90,6 +90,7 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
     path = Path(data_path) if data_path is not None else ensure_source_data(source)
     data = load_source(path, source)
     stop = budget if stop_over_budget else None
+    record = dataset_record(path, data)  # its fingerprint also keys the checkpoints
     methods = []
     for algo in parse_algos(",".join(algos)):
         if algo in BC_ALGOS:
@@ -98,7 +99,8 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
             cfg = preset(algo, preset_name, cost_limit=float(budget),
                          **({} if steps is None else {"steps": steps}))
             trained = train_baseline(cfg, data, range(seeds), out / "ckpt" / algo,
-                                     overwrite=overwrite, progress=progress)
+                                     overwrite=overwrite, progress=progress,
+                                     data_id=record["fingerprint"])
         start = time.perf_counter()
         returns, costs = evaluate_trained(trained, target, episodes, seed=1, stop_cost=stop)
         methods.append({
@@ -114,7 +116,7 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
     results = {"format": RESULTS_FORMAT, "pair": pair, "source": source, "target": target,
                "budget": budget, "seeds": seeds, "episodes": episodes, "preset": preset_name,
                "stop_over_budget": stop_over_budget,
-               "data": dataset_record(path, data), "versions": versions(),
+               "data": record, "versions": versions(),
                "created": time.strftime("%Y-%m-%d %H:%M:%S"), "methods": methods}
     write_baselines(out, results)
     return results

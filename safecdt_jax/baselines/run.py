@@ -68,9 +68,7 @@ def _fingerprint(data: Dataset) -> str:
     return dataset_record("", data)["fingerprint"]
 
 
-def _act_fn(cfg: BaselineConfig, obs_dim: int, act_dim: int, horizon: int,
-            norm: IONorm) -> Callable:
-    algo = make_algorithm(cfg, obs_dim, act_dim, horizon)
+def _act_fn(algo, norm: IONorm) -> Callable:
     mean, std, scale = (jnp.asarray(x) for x in norm)
 
     def act(params, obs, key):
@@ -90,14 +88,15 @@ def _same_run(saved: dict, meta: dict, done: int, n_chunks: int) -> dict[str, bo
 
 def train_baseline(cfg: BaselineConfig, data: Dataset, seeds: Sequence[int],
                    ckpt: str | os.PathLike | None = None, overwrite: bool = False,
-                   progress: bool = True) -> Trained:
+                   progress: bool = True, data_id: str | None = None) -> Trained:
     """Trains `cfg.algo` on `data` for every seed in one vmapped program, in jitted chunks of
     `cfg.chunk` steps (the bits of one uninterrupted scan, `train.make_train`).
 
     With `ckpt`, the state is saved after every chunk; a finished run there with the same
     config, data and seeds is loaded instead of retrained, an unfinished or shorter one resumed
     (and extended to `cfg.steps`). A checkpoint of another config, data or seeds (or of more
-    updates) raises ValueError unless `overwrite`.
+    updates) raises ValueError unless `overwrite`. `data_id`: the data's fingerprint
+    (`pretrain.run.dataset_record`), when the caller has it; computed otherwise.
     """
     from safecdt_jax.pretrain.checkpoint import _manager, checkpoint_steps
 
@@ -110,14 +109,14 @@ def train_baseline(cfg: BaselineConfig, data: Dataset, seeds: Sequence[int],
     state = jax.jit(jax.vmap(algo.init))(keys[:, 0])
     n_chunks = -(-cfg.steps // cfg.chunk)
     meta = {"format": CKPT_FORMAT, "config": cfg.record(), "seeds": seeds,
-            "data": _fingerprint(data), "norm": norm.to_json()}
+            "data": data_id or _fingerprint(data), "norm": norm.to_json()}
     history: dict[str, list] = {}
     done, reused, seconds = 0, False, 0.0
     path = None if ckpt is None else Path(ckpt).expanduser().absolute()
-    if path is not None and checkpoint_steps(path):
+    steps = [] if path is None else checkpoint_steps(path)
+    if steps:
         import orbax.checkpoint as ocp
 
-        steps = checkpoint_steps(path)
         with _manager(path, read_only=True) as mngr:
             saved = mngr.restore(steps[-1], args=ocp.args.Composite(
                 meta=ocp.args.JsonRestore()))["meta"]
@@ -167,7 +166,7 @@ def train_baseline(cfg: BaselineConfig, data: Dataset, seeds: Sequence[int],
     if bar is not None:
         bar.close()
     return Trained(cfg.algo, cfg.record(), seeds, state.params, norm,
-                   _act_fn(cfg, obs_dim, act_dim, data.horizon, norm),
+                   _act_fn(algo, norm),
                    {k: np.concatenate(v, axis=1) for k, v in history.items()}, seconds, reused)
 
 
