@@ -166,18 +166,18 @@ def costs_by_ctg(results: Mapping[str, Any], budget: float | None = None,
     return out
 
 
-def certify_file(path: str | os.PathLike, budget: float, alpha: float = 0.05,
-                 kappa: float = 1.0, source: str | os.PathLike | None = None) -> dict[str, Any]:
-    """The certificate of the deployment in results file `path` at `budget` (its runs at that
-    budget; N = the deployment's episodes per seed); with `source`, a second results file
-    measured at the same CTG conditions in the source task, the transfer check too (at the
-    condition of the target's critical budget)."""
-    results = json.loads(Path(path).read_text())
+def certify_results(results: Mapping[str, Any], budget: float, alpha: float = 0.05,
+                    kappa: float = 1.0, source: Mapping[str, Any] | None = None
+                    ) -> dict[str, Any]:
+    """The certificate of a deployment results record (`results.json`'s content) at `budget`
+    (its runs at that budget; N = the deployment's episodes per seed); with `source`, a second
+    record measured at the same CTG conditions in the source task, the transfer check too (at
+    the condition of the target's critical budget)."""
     episodes = int(results.get("deploy_config", {}).get("episodes", 50))
     by_c = costs_by_ctg(results, budget)
     cert = certificate(by_c, budget, episodes, alpha, kappa)
     if source is not None:
-        src = costs_by_ctg(json.loads(Path(source).read_text()))
+        src = costs_by_ctg(source)
         common = sorted(set(src) & set(by_c))
         if not common:
             raise ValueError("source and target results share no CTG condition")
@@ -188,6 +188,14 @@ def certify_file(path: str | os.PathLike, budget: float, alpha: float = 0.05,
         cert["transfer"] = transfer_check(p1, p2, s2, i, budget, kappa) | {
             "condition": common[i], "conditions": common}
     return cert
+
+
+def certify_file(path: str | os.PathLike, budget: float, alpha: float = 0.05,
+                 kappa: float = 1.0, source: str | os.PathLike | None = None) -> dict[str, Any]:
+    """`certify_results` of the results file `path` (and of the source results file `source`,
+    when given)."""
+    src = None if source is None else json.loads(Path(source).read_text())
+    return certify_results(json.loads(Path(path).read_text()), budget, alpha, kappa, src)
 
 
 def certificate_table(cert: Mapping[str, Any]) -> str:
@@ -221,5 +229,6 @@ def certificate_table(cert: Mapping[str, Any]) -> str:
 
 
 __all__ = ["certificate", "certificate_table", "certified_budget", "certify_file",
-           "condition_stats", "costs_by_ctg", "critical_budget", "multi_episode_bound",
-           "single_episode_bound", "sufficient_margin", "threshold_bound", "transfer_check"]
+           "certify_results", "condition_stats", "costs_by_ctg", "critical_budget",
+           "multi_episode_bound", "single_episode_bound", "sufficient_margin", "threshold_bound",
+           "transfer_check"]

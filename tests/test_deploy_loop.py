@@ -101,6 +101,22 @@ def test_variants_and_budgets_share_one_compilation(swept):
     assert fn._cache_size() == before
 
 
+def test_sweep_without_lora_variants_skips_the_steps_with_the_same_bits(swept):
+    keys, _, _ = swept
+    env, params, model_cfg, base = tiny_setup()
+    specs = _specs("zero_shot", "fixed_ctg(0.2)")
+    fast = jax.device_get(sweep(keys, base, params, specs, env=env, model_cfg=model_cfg,
+                                cfg=TINY_DEPLOY))
+    assert _compiled(env, model_cfg, TINY_DEPLOY, False, False)[1]._cache_size() == 1
+    init_all, run_all = _compiled(env, model_cfg, TINY_DEPLOY, False, True)  # with LoRA steps
+    carry = init_all(keys, init_adapters(keys, base, model_cfg), specs)
+    _, full = jax.device_get(run_all(carry, np.arange(TINY_DEPLOY.episodes, dtype=np.int32),
+                                     base, params, specs))
+    for name, value in full._asdict().items():
+        np.testing.assert_array_equal(getattr(fast, name), value, err_msg=name)
+    assert np.all(fast.lora_loss == 0)
+
+
 def test_metrics_follow_the_rules(swept):
     _, _, out = swept
     safe, zero = 0, 1

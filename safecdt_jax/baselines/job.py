@@ -69,12 +69,14 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
                   preset_name: str = "cpu", episodes: int = 20, out: str | os.PathLike = ".",
                   data_path: str | os.PathLike | None = None, steps: int | None = None,
                   stop_over_budget: bool = True, overwrite: bool = False,
-                  progress: bool = True) -> dict[str, Any]:
+                  progress: bool = True, ckpt_dir: str | os.PathLike | None = None
+                  ) -> dict[str, Any]:
     """Trains `algos` (seeds 0..seeds-1) on `pair`'s source data (the cached default, collected
     if missing, unless `data_path`), evaluates each seed for `episodes` episodes in the target
     task under the runtime budget (`stop_over_budget`), writes the results into `out` and
     returns them. `steps` overrides the preset's updates (Q-learning) or BC's steps.
-    Checkpoints go to `out/ckpt/<algo>` and are reused when config, data and seeds match."""
+    Checkpoints go to `ckpt_dir/<algo>` (default `out/ckpt`) and are reused when config, data
+    and seeds match."""
     from safecdt_jax.deploy.job import parse_pair
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pretrain.run import dataset_record, versions
@@ -87,6 +89,7 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
     if not budget > 0:
         raise ValueError(f"the cost budget must be positive, got {budget!r}")
     out = Path(out).expanduser()
+    ckpt_dir = out / "ckpt" if ckpt_dir is None else Path(ckpt_dir).expanduser()
     path = Path(data_path) if data_path is not None else ensure_source_data(source)
     data = load_source(path, source)
     stop = budget if stop_over_budget else None
@@ -98,7 +101,7 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
         else:
             cfg = preset(algo, preset_name, cost_limit=float(budget),
                          **({} if steps is None else {"steps": steps}))
-            trained = train_baseline(cfg, data, range(seeds), out / "ckpt" / algo,
+            trained = train_baseline(cfg, data, range(seeds), ckpt_dir / algo,
                                      overwrite=overwrite, progress=progress,
                                      data_id=record["fingerprint"])
         start = time.perf_counter()
@@ -176,7 +179,7 @@ def plot_scatter(methods: Sequence[dict], budget: float, title: str,
     for m in methods:
         cost = np.asarray(m["costs"], np.float64).mean(-1)
         ret = np.asarray(m["returns"], np.float64).mean(-1)
-        ax.scatter(cost, ret, label=LABELS[m["algo"]], alpha=0.8)
+        ax.scatter(cost, ret, label=m.get("label") or LABELS[m["algo"]], alpha=0.8)
     ax.axvline(budget, color="k", ls="--", lw=1, label=f"budget {budget:g}")
     ax.set_xlabel("mean episode cost (per seed)")
     ax.set_ylabel("mean episode return (per seed)")

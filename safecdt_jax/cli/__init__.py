@@ -9,6 +9,7 @@ from safecdt_jax.cli import (
     demo,  # noqa: F401  (each module registers its commands)
     deploy,  # noqa: F401
     expert,  # noqa: F401
+    paper,  # noqa: F401
     theory,  # noqa: F401
     train,  # noqa: F401
 )

@@ -88,8 +88,12 @@ def run_deployment(
     cfg=None,
     progress: bool = True,
     dynamics: Sequence[dict[str, float]] = ({},),
+    runs: Sequence[tuple[str, float]] | None = None,
 ) -> dict[str, Any]:
     """Deploy checkpoint `ckpt` into task `target` for every (variant, budget, shift) and seed.
+
+    `runs`, when given, lists the (variant, budget) pairs to run instead of every variant x
+    budget (e.g. one variant at five budgets beside four variants at one), each at every shift.
 
     `cfg` (default `DeployConfig()`) sets the deployment; the token encoding comes with the
     checkpoint. `dynamics` lists the target's dynamics shifts ({field: scale}, from
@@ -114,7 +118,8 @@ def run_deployment(
         raise ValueError(f"seeds must be >= 1, got {seeds}")
     env, env_params, policy, cfg, r_ref = load_deployment(ckpt, target, cfg)
     dynamics = list(dynamics) or [{}]
-    combos = list(itertools.product(variants, budgets, dynamics))
+    pairs = list(itertools.product(variants, budgets)) if runs is None else list(runs)
+    combos = [(v, b, shift) for v, b in pairs for shift in dynamics]
     specs = stack_specs([make_spec(make_variant(v, cfg), b, r_ref) for v, b, _ in combos])
     per_run = [apply_dynamics(env_params, shift) for _, _, shift in combos]
     # One target for all runs is broadcast (as before shifts existed); several are a run axis.

@@ -67,7 +67,8 @@ class Metrics(NamedTuple):
     returns, costs: the episode's return and cost (raw units). violation: bool, cost > B.
     ctg_target, rtg_target: the raw targets the episode started from. lam: lambda after the
     episode. a_c, a_r: the scheduler's Wilson lower bounds over the window ending at the episode.
-    lora_loss: the weighted adapter loss at the last LoRA step after the episode.
+    lora_loss: the weighted adapter loss at the last LoRA step after the episode (0 for a
+        variant without LoRA, whose update is discarded).
     """
 
     returns: jax.Array
@@ -119,11 +120,15 @@ def deploy_episodes(
     env: SafetyEnv,
     model_cfg: CDTConfig,
     cfg: DeployConfig,
+    finetune: bool = True,
 ) -> tuple[Carry, Metrics]:
     """Run the episodes with indices `episodes` [n] (consecutive, from the carry's point on).
 
     `deploy` runs all of them in one scan; a caller may also run the same program in chunks
-    (e.g. to show progress), with identical results.
+    (e.g. to show progress), with identical results. `finetune` (static) False leaves the LoRA
+    steps out of the program: valid only when no variant of the batch trains its adapters
+    (`variant.lora` all False), where the update is discarded anyway, so every metric is the
+    same bits and the episodes cost only their rollouts.
     """
     variant, budget = spec.variant, spec.budget
 
@@ -143,16 +148,21 @@ def deploy_episodes(
         window = window_mask(e, cfg.episodes, cfg.window)
         violations = history["costs"] > budget
         lam = lambda_update(carry.lam, violations, window, e, cfg, enabled=variant.reweight)
-        lora, opt_state, aux = lora_finetune(
-            k_lora, carry.lora, carry.opt_state, base_params=base_params, model_cfg=model_cfg,
-            buffer=buffer, lam=lam, budget=budget, variant=variant, cfg=cfg)
+        if finetune:
+            lora, opt_state, aux = lora_finetune(
+                k_lora, carry.lora, carry.opt_state, base_params=base_params,
+                model_cfg=model_cfg, buffer=buffer, lam=lam, budget=budget, variant=variant,
+                cfg=cfg)
+            loss = jnp.where(variant.lora, aux["loss"][-1], 0.0)
+        else:
+            lora, opt_state, loss = carry.lora, carry.opt_state, jnp.zeros((), jnp.float32)
         sched, a_c, a_r = scheduler_step(
             carry.scheduler, e, window_costs=history["costs"], window_returns=history["returns"],
             window_rtg_targets=history["rtg"], window_valid=window, budget=budget,
             variant=variant, cfg=cfg)
         metrics = Metrics(returns=ep["return"], costs=ep["cost"], violation=ep["cost"] > budget,
                           ctg_target=ctg, rtg_target=rtg, lam=lam, a_c=a_c, a_r=a_r,
-                          lora_loss=aux["loss"][-1])
+                          lora_loss=loss)
         return Carry(lora, opt_state, buffer, sched, lam, history, key), metrics
 
     return jax.lax.scan(episode, carry, jnp.asarray(episodes, jnp.int32))

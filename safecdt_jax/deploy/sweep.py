@@ -32,8 +32,10 @@ from safecdt_jax.model.config import CDTConfig
 
 
 @functools.cache
-def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batched: bool):
-    """Jitted (init, episodes) programs over runs x seeds for one (env, model, config)."""
+def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batched: bool,
+              finetune: bool = True):
+    """Jitted (init, episodes) programs over runs x seeds for one (env, model, config); without
+    the LoRA steps when not `finetune` (`loop.deploy_episodes`)."""
     static = dict(env=env, model_cfg=model_cfg, cfg=cfg)
     env_axis = 0 if env_batched else None
 
@@ -41,7 +43,8 @@ def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batch
         return deploy_init(key, lora, spec, **static)
 
     def episodes(carry, index, base, env_params, spec):
-        return deploy_episodes(carry, index, base, env_params, spec, **static)
+        return deploy_episodes(carry, index, base, env_params, spec, **static,
+                               finetune=finetune)
 
     init_all = jax.vmap(jax.vmap(init, (0, 0, None)), (None, None, 0))
     run_all = jax.vmap(jax.vmap(episodes, (0, None, None, None, None)),
@@ -82,7 +85,8 @@ def sweep(
         return_carry: also return the final `Carry` (leaves [R, S, ...]: the adapters after
             the deployment, the buffer, the scheduler and lambda), as `(metrics, carry)`.
 
-    Runs and seeds execute as one program; no Python loop over either.
+    Runs and seeds execute as one program; no Python loop over either. When no run trains
+    adapters, the program leaves the LoRA steps out (same metrics, rollouts' cost only).
     """
     chunk = cfg.episodes if chunk is None else chunk
     if chunk < 1 or cfg.episodes % chunk:
@@ -100,7 +104,10 @@ def sweep(
         keys, lora = jax.device_put((keys, lora), seeded)
         base_params, env_params, specs = jax.device_put((base_params, env_params, specs),
                                                         replicated)
-    init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched)
+    # A batch with no LoRA variant (zero-shot, fixed CTG, step changes) gets the program
+    # without LoRA steps: the same bits at the cost of the rollouts alone.
+    finetune = bool(np.any(np.asarray(jax.device_get(specs.variant.lora))))
+    init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched, finetune)
     carry = init_all(keys, lora, specs)
     parts = []
     for start in range(0, cfg.episodes, chunk):

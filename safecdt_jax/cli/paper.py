@@ -1,0 +1,57 @@
+"""`safecdt-jax paper`: every experiment of the paper's evaluation, and the report."""
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from safecdt_jax.cli.app import app
+
+
+@app.command()
+def paper(
+    pairs: Annotated[str, typer.Option(help="Comma-separated pairs.")]
+        = "CG1-CG2,CC1-CC2,PC1-PC2",
+    quick: Annotated[bool, typer.Option(
+        help="Few seeds and episodes (2 seeds x 10 episodes, 20 for the intervention), cached "
+             "baselines only: a first look in minutes.")] = False,
+    out: Annotated[Path | None, typer.Option(
+        help="Report folder (default report/, or runs/paper-quick with --quick).")] = None,
+    preset: Annotated[str, typer.Option(help="CDT preset pretrained per source task.")] = "cpu",
+    baselines: Annotated[bool, typer.Option(
+        help="Train the baselines that are not cached (default on, off with --quick).")]
+        = True,
+    seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
+) -> None:
+    """Tables 1-7, Figure 2 and the safety certificate, ours beside the paper's, in
+    OUT/REPORT.md; finished experiments (OUT/experiments/*.json) are reused, so an
+    interrupted run continues where it stopped."""
+    from safecdt_jax.deploy.job import parse_list
+    from safecdt_jax.paper import PaperPlan, quick_plan, run_paper
+
+    try:
+        pair_list = tuple(parse_list(pairs, str, "pair"))
+        study = "CG1-CG2" if "CG1-CG2" in pair_list else pair_list[0]
+        settings = dict(pairs=pair_list, study_pair=study, preset=preset, seed=seed)
+        plan = (quick_plan(**settings) if quick else
+                PaperPlan(**settings, train_baselines=baselines))
+    except ValueError as e:
+        typer.echo(f"error: {e}", err=True)
+        raise typer.Exit(1) from e
+    _persistent_cache()
+    folder = out or (Path("runs") / "paper-quick" if quick else Path("report"))
+    summary = run_paper(plan, folder, log=typer.echo)
+    typer.echo(f"wrote {folder / 'REPORT.md'} ({summary['seconds'] / 60:.1f} min)")
+
+
+def _persistent_cache() -> None:
+    """Keep compiled programs across runs (a resumed suite skips its compiles)."""
+    import os
+
+    import jax
+
+    from safecdt_jax.paths import cache_root
+
+    if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+        jax.config.update("jax_compilation_cache_dir", str(cache_root() / "xla"))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

@@ -1,0 +1,198 @@
+"""Run the paper suite: prepare each pair's checkpoint, run every experiment of a `PaperPlan`
+that is not already finished, and keep each result in its own file.
+
+Each experiment writes `OUT/experiments/PAIR_NAME.json` atomically with its spec (what made it:
+counts, runs, task, the checkpoint's identity), its wall time and its results. A rerun loads
+every file whose spec equals the current one and runs only the rest, so an interrupted suite
+continues where it stopped and a changed plan reruns only what it changes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from safecdt_jax.paper.plan import Experiment, PaperPlan, experiments
+
+RECORD_FORMAT = 1
+
+
+def prepare_pair(pair: str, plan: PaperPlan, progress: bool = True) -> Path:
+    """The pretrained CDT of `pair`'s source task (plan.preset), as `safecdt-jax run` makes it:
+    the cached expert data and checkpoint reused, collected or trained if missing."""
+    from safecdt_jax.deploy.job import parse_pair
+    from safecdt_jax.experts.collect import ensure_source_data
+    from safecdt_jax.pretrain.run import ensure_checkpoint
+
+    source, _ = parse_pair(pair)
+    data = ensure_source_data(source, seed=plan.seed)
+    return ensure_checkpoint(data, source, plan.preset, seed=plan.seed, overwrite=True,
+                             progress=progress)
+
+
+def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
+    """What identifies a pretrained checkpoint in an experiment's spec: its folder, task,
+    preset, update count and the fingerprint of the data it was trained on."""
+    from safecdt_jax.pretrain.checkpoint import read_meta
+
+    meta = read_meta(ckpt)
+    return {"path": str(Path(ckpt).absolute()), "task": meta["task"], "preset": meta["preset"],
+            "step": int(meta["step"]), "data": meta["dataset"]["fingerprint"]}
+
+
+def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) -> dict[str, Any]:
+    """Everything that decides an experiment's result, as JSON-ready data (two runs with equal
+    specs give the same result, so a finished one is reused)."""
+    from safecdt_jax.deploy.job import parse_pair
+
+    source, target = parse_pair(e.pair)
+    spec = {"format": RECORD_FORMAT, "pair": e.pair, "name": e.name, "kind": e.kind,
+            "seeds": e.seeds, "episodes": e.episodes, "budget": plan.budget}
+    if e.kind == "deploy":
+        return spec | {"task": source if e.task == "source" else target,
+                       "runs": [[v, float(b)] for v, b in e.runs], "horizon": plan.horizon,
+                       "seed": plan.seed, "stop_over_budget": True, "checkpoint": dict(ckpt_id)}
+    return spec | {"algos": list(plan.baseline_algos), "preset": plan.baseline_preset,
+                   "stop_over_budget": True, "data": ckpt_id["data"]}
+
+
+def _compact(results: dict[str, Any], decimals: int = 5) -> dict[str, Any]:
+    """The deployment results with per-episode metrics rounded (float32 values carry about 7
+    significant digits; 5 decimals keep costs and returns exact to 1e-5 and the files small)."""
+    runs = [dict(run, metrics={k: np.round(np.asarray(v, np.float64), decimals).tolist()
+                               for k, v in run["metrics"].items()}) for run in results["runs"]]
+    return dict(results, runs=runs)
+
+
+def baselines_folder(pair: str, preset: str) -> Path:
+    """Where the suite keeps a pair's baselines (checkpoints and `baselines.json`): the cache,
+    so that `paper` and `paper --quick` share them."""
+    from safecdt_jax.paths import cache_root
+
+    return cache_root() / "baselines" / f"{pair}-{preset}"
+
+
+def _matching_baselines(folder: Path, spec: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The `baselines.json` in `folder` if it was made with the spec's settings and data."""
+    path = folder / "baselines.json"
+    if not path.is_file():
+        return None
+    saved = json.loads(path.read_text())
+    same = (saved.get("pair") == spec["pair"] and saved.get("seeds") == spec["seeds"]
+            and saved.get("episodes") == spec["episodes"]
+            and float(saved.get("budget", -1)) == spec["budget"]
+            and saved.get("preset") == spec["preset"]
+            and saved.get("stop_over_budget") is True
+            and [m["algo"] for m in saved.get("methods", [])] == spec["algos"]
+            and saved.get("data", {}).get("fingerprint") == spec["data"])
+    return saved if same else None
+
+
+def _run_baselines(spec: Mapping[str, Any], plan: PaperPlan, progress: bool
+                   ) -> dict[str, Any] | None:
+    from safecdt_jax.baselines.job import run_baselines
+
+    folder = baselines_folder(spec["pair"], spec["preset"])
+    saved = _matching_baselines(folder, spec)
+    if saved is not None or not plan.train_baselines:
+        return saved
+    return run_baselines(spec["pair"], spec["algos"], spec["seeds"], spec["budget"],
+                         spec["preset"], spec["episodes"], out=folder, progress=progress)
+
+
+def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan, ckpt: Path,
+                progress: bool) -> dict[str, Any]:
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.deploy.job import run_deployment
+
+    cfg = DeployConfig(episodes=e.episodes, horizon=plan.horizon, budget=plan.budget)
+    results = run_deployment(ckpt, spec["task"], [], [], e.seeds, seed=plan.seed, cfg=cfg,
+                             progress=progress, runs=e.runs)
+    return _compact(results)
+
+
+def load_record(path: Path, spec: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The finished experiment record at `path` if its spec equals `spec`, else None."""
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError:  # never written atomically by us: treat as unfinished
+        return None
+    return record if record.get("spec") == json.loads(json.dumps(spec)) else None
+
+
+def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path, folder: Path,
+                   progress: bool = True, log: Callable[[str], None] = print
+                   ) -> dict[str, Any] | None:
+    """The record of experiment `e` (`{"spec", "seconds", "finished", "results"}`), loaded from
+    `folder/KEY.json` when finished with the same spec, else run and written there atomically.
+    None for baselines that are neither cached nor to be trained (`plan.train_baselines`)."""
+    from safecdt_jax.data.dataset import write_text_atomic
+
+    spec = experiment_spec(e, plan, checkpoint_identity(ckpt))
+    path = folder / f"{e.key}.json"
+    record = load_record(path, spec)
+    if record is not None:
+        log(f"{e.key}: finished earlier ({record['seconds']:.0f} s), reused")
+        return record
+    log(f"{e.key}: running ({_describe(e)})")
+    start = time.perf_counter()
+    if e.kind == "deploy":
+        results = _run_deploy(e, spec, plan, ckpt, progress)
+    else:
+        results = _run_baselines(spec, plan, progress)
+        if results is None:
+            log(f"{e.key}: no cached baselines with these settings; skipped (train them with "
+                f"the full `paper` or `safecdt-jax baselines`)")
+            return None
+    record = {"spec": spec, "seconds": time.perf_counter() - start,
+              "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "results": results}
+    folder.mkdir(parents=True, exist_ok=True)
+    write_text_atomic(path, json.dumps(record))
+    log(f"{e.key}: done in {record['seconds']:.0f} s")
+    return record
+
+
+def _describe(e: Experiment) -> str:
+    if e.kind == "baselines":
+        return f"baselines, {e.seeds} seeds x {e.episodes} episodes"
+    return f"{len(e.runs)} run(s) x {e.seeds} seeds x {e.episodes} episodes in the {e.task}"
+
+
+def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
+              checkpoints: Mapping[str, str | os.PathLike] | None = None,
+              log: Callable[[str], None] = print) -> dict[str, Any]:
+    """Runs (or reuses) every experiment of `plan` into `out/experiments`, then writes the
+    report (`report.write_report`). `checkpoints` maps a pair to a pretrained checkpoint to
+    use instead of the cached one (tests). Returns `{"records": {key: record}, "seconds",
+    "prepare_seconds": {pair: s}}`."""
+    from safecdt_jax.paper.report import write_report
+
+    out = Path(out)
+    folder = out / "experiments"
+    start = time.perf_counter()
+    records: dict[str, Any] = {}
+    prepare: dict[str, float] = {}
+    for pair in plan.pairs:
+        t0 = time.perf_counter()
+        if checkpoints is not None and pair in checkpoints:
+            ckpt = Path(checkpoints[pair])
+        else:
+            log(f"{pair}: source data and pretrained CDT ({plan.preset} preset)")
+            ckpt = prepare_pair(pair, plan, progress)
+        prepare[pair] = time.perf_counter() - t0
+        for e in (x for x in experiments(plan) if x.pair == pair):
+            record = run_experiment(e, plan, ckpt, folder, progress, log)
+            if record is not None:
+                records[e.key] = record
+    summary = {"records": records, "seconds": time.perf_counter() - start,
+               "prepare_seconds": prepare}
+    write_report(out, plan, summary)
+    return summary

@@ -1,0 +1,174 @@
+"""The paper suite: plan validation, the tables' arithmetic on hand-made records, the claims,
+and `run_paper` end to end on the tiny preset (every table and figure written; a rerun reuses
+finished experiments and redoes only a missing one; cached baselines are picked up)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from safecdt_jax.paper import PaperPlan, experiments, quick_plan, run_paper
+from safecdt_jax.paper import tables as T
+from safecdt_jax.paper.report import claims
+from safecdt_jax.paper.run import baselines_folder, checkpoint_identity
+
+
+def _run(variant, budget, cost, violation=None, ret=None):
+    cost = np.asarray(cost, np.float64)
+    return {"variant": variant, "budget": budget, "metrics": {
+        "cost": cost.tolist(), "return": (np.zeros_like(cost) if ret is None else ret).tolist(),
+        "violation": ((cost > budget) if violation is None else violation).astype(float).tolist(),
+        "ctg_target": np.full_like(cost, 0.0).tolist()}}
+
+
+def test_plan_rejects_bad_values_naming_the_field():
+    with pytest.raises(ValueError, match=r"PaperPlan\.pairs: unknown pair XX"):
+        PaperPlan(pairs=("XX",))
+    with pytest.raises(ValueError, match=r"PaperPlan\.intervention_episodes"):
+        PaperPlan(intervention_episodes=51)
+    with pytest.raises(ValueError, match=r"PaperPlan\.main_seeds"):
+        PaperPlan(main_seeds=0)
+    with pytest.raises(ValueError, match=r"PaperPlan\.alpha"):
+        PaperPlan(alpha=1.5)
+
+
+def test_experiments_of_the_default_plan():
+    exps = {e.key: e for e in experiments(PaperPlan())}
+    assert len(exps) == 3 * 4 + 1  # main, ctg, source_ctg, baselines per pair; studies once
+    assert exps["CG1-CG2_main"].seeds == 15 and exps["CC1-CC2_main"].seeds == 3
+    studies = exps["CG1-CG2_studies"].runs
+    assert [b for v, b in studies if v == "safe_cdt"] == [25.0, 30.0, 35.0, 40.0, 50.0]
+    assert [v for v, _ in studies if v != "safe_cdt"] == ["no_reweight", "scheduler_only",
+                                                         "zero_shot", "naive_lora"]
+    ctg = exps["PC1-PC2_ctg"]
+    assert ctg.episodes == 100 and [v for v, _ in ctg.runs][-2:] == [
+        "step_change(0.2,1)", "step_change(1,0.2)"]
+    assert exps["PC1-PC2_source_ctg"].task == "source"
+
+
+def test_switch_deltas_and_direction_by_hand():
+    # seed 0: costs 2 then 6 (delta +4); seed 1: 5 then 3 (delta -2); budget 4 -> VR deltas
+    cost = [[2, 2, 6, 6], [5, 5, 3, 3]]
+    d = T.switch_deltas(_run("x", 4.0, cost))
+    np.testing.assert_allclose(d["cost"], [4.0, -2.0])
+    np.testing.assert_allclose(d["vr"], [100.0, -100.0])
+
+
+def test_table5_means_spearman_and_first_episodes_only():
+    plan = PaperPlan(pairs=("CC1-CC2",), ctg_ratios=(0.2, 0.6, 1.0), episodes=2,
+                     intervention_episodes=4)
+    # episodes 3-4 (beyond plan.episodes) are 100 and must not count
+    runs = [_run(f"fixed_ctg({r:g})", 30.0, [[c, c, 100, 100], [c + 2, c + 2, 100, 100]])
+            for r, c in ((0.2, 1.0), (0.6, 5.0), (1.0, 3.0))]
+    records = {"CC1-CC2_ctg": {"spec": {"name": "ctg"}, "results": {"runs": runs}}}
+    _, data = T.table5(records, plan)
+    assert data["CC1-CC2"]["means"] == {0.2: 2.0, 0.6: 6.0, 1.0: 4.0}
+    assert data["CC1-CC2"]["stds"][0.2] == 1.0
+    assert data["CC1-CC2"]["spearman"] == pytest.approx(0.5)
+
+
+def test_claims_on_hand_made_numbers():
+    plan = PaperPlan(pairs=("CG1-CG2", "PC1-PC2"), budgets=(25.0, 30.0, 40.0),
+                     ablations=("safe_cdt", "zero_shot"), ctg_seeds=5)
+
+    def s(vr, cost=5.0, ret=0.0, vr_std=1.0):
+        return {"vr_mean": vr, "vr_std": vr_std, "mean_cost_mean": cost,
+                "mean_return_mean": ret}
+
+    data = {"t1": {"CG1-CG2": s(10.0, 8.0), "PC1-PC2": s(50.0, 20.0)},
+            "t2": {25.0: s(30.0), 30.0: s(10.0), 40.0: s(12.0)},
+            "t3": {"safe_cdt": s(10.0, vr_std=3.0), "zero_shot": s(12.0)},
+            "t4": {"CG1-CG2": {"bcql": s(70.0, 26.0, 4.0), "bearl": s(90.0, 29.0, 7.0),
+                               "cpq": s(20.0, 9.0, -0.5)}},
+            "t5": {"CG1-CG2": {"spearman": 0.9, "means": {0.2: 5.0}},
+                   "PC1-PC2": {"spearman": 0.4, "means": {0.2: 27.0, 1.0: 29.0}}},
+            "t6": {("CG1-CG2", "low->high"): {"direction": 4, "seeds": 5},
+                   ("CG1-CG2", "high->low"): {"direction": 3, "seeds": 5},
+                   ("CG1-CG2", "fixed 0.2"): {"direction": None, "seeds": 5}},
+            "per_seed_vr": {("PC1-PC2", "cpq"): [0.0, 100.0, 40.0]}}
+    got = {c["claim"]: c["supported"] for c in claims(data, plan)}
+    want = {
+        "Safe-CDT's mean cost on CG1-CG2 is well below B (at most B/2)": True,
+        "Safe-CDT has the lowest VR of Safe-CDT, BCQL, BEARL and CPQ on CG1-CG2": True,
+        "VR depends on the pair (spread of at least 10 pp across pairs)": True,
+        "VR at B = 25 exceeds VR at every B >= 30": True,
+        "VR is non-monotone in B over B >= 30": False,  # 10 -> 12 only rises
+        "All variants reach similar VR (spread within the largest seed std)": True,
+        "Zero-shot VR lies within one seed std of Safe-CDT's": True,
+        "BCQL and BEARL saturate the budget on CG1-CG2 (cost >= 0.8 B)": True,
+        "CPQ is over-conservative on CG1-CG2 (cost <= B/2, reward <= 1)": True,
+        "CPQ on PC1-PC2 is seed-unstable (per-seed VR spans >= 50 pp)": True,
+        "Cost rises with the CTG ratio on every pair (Spearman > 0.5)": False,
+        "CC1-CC2 shows the strongest cost response": None,  # CC not run
+        "Every step change moves cost the expected way in >= 3 of 5 seeds, on every pair": True,
+        "PC1-PC2's cost saturates near B (every ratio's cost >= 0.8 B)": True,
+    }
+    for claim, value in want.items():
+        assert got[claim] is value, claim
+
+
+TINY = dict(pairs=("PC1-PC2",), study_pair="PC1-PC2", preset="tiny", horizon=10, episodes=10,
+            intervention_episodes=10, budget=3.0, budgets=(2.0, 3.0, 4.0),
+            ablations=("safe_cdt", "zero_shot"), ctg_ratios=(0.2, 1.0), main_seeds=2)
+
+
+def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, monkeypatch):
+    _, ckpt, _ = tiny_run
+    monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path / "cache"))
+    plan = quick_plan(**TINY)
+    # cached baselines with the plan's settings and the checkpoint's data: Table 7 uses them
+    folder = baselines_folder("PC1-PC2", plan.baseline_preset)
+    folder.mkdir(parents=True)
+    costs = [[0.0] * 5, [10.0] * 5, [1.0] * 5]
+    method = {"algo": "cpq", "returns": [[1.0] * 5] * 3, "costs": costs,
+              "summary": {"mean_return_mean": 1.0, "mean_return_std": 0.0,
+                          "mean_cost_mean": 11 / 3, "mean_cost_std": 4.5, "vr_mean": 100 / 3,
+                          "vr_std": 47.1, "seeds": 3}}
+    saved = {"pair": "PC1-PC2", "seeds": 3, "episodes": 5, "budget": 3.0, "preset": "cpu",
+             "stop_over_budget": True, "methods": [method],
+             "data": {"fingerprint": checkpoint_identity(ckpt)["data"]}}
+    (folder / "baselines.json").write_text(json.dumps(saved))
+    plan = quick_plan(**TINY, baseline_algos=("cpq",))
+    out = tmp_path / "report"
+    logs: list[str] = []
+    summary = run_paper(plan, out, checkpoints={"PC1-PC2": ckpt}, progress=False,
+                        log=logs.append)
+    assert set(summary["records"]) == {f"PC1-PC2_{n}" for n in
+                                       ("main", "studies", "ctg", "source_ctg", "baselines")}
+    report = (out / "REPORT.md").read_text()
+    for heading in [f"## Table {i}" for i in range(1, 8)] + ["## Safety certificate",
+                                                             "## Claims"]:
+        assert heading in report, heading
+    assert "| PC1→PC2 | CPQ |" in report and "Critical budget B* =" in report
+    for fig in ("figure2.png", "PC1-PC2_scatter.png", "PC1-PC2/cost.png",
+                "PC1-PC2/ctg_target.png"):
+        assert (out / "figures" / fig).stat().st_size > 0, fig
+    main = json.loads((out / "experiments" / "PC1-PC2_main.json").read_text())
+    assert np.asarray(main["results"]["runs"][0]["metrics"]["cost"]).shape == (2, 10)
+
+    # a rerun reuses every finished experiment; a deleted one alone is redone
+    (out / "experiments" / "PC1-PC2_ctg.json").unlink()
+    stamp = (out / "experiments" / "PC1-PC2_studies.json").stat().st_mtime_ns
+    logs.clear()
+    again = run_paper(plan, out, checkpoints={"PC1-PC2": ckpt}, progress=False,
+                      log=logs.append)
+    ran = [line.split(":")[0] for line in logs if line.endswith("running") or ": running" in line]
+    assert ran == ["PC1-PC2_ctg"]
+    assert (out / "experiments" / "PC1-PC2_studies.json").stat().st_mtime_ns == stamp
+    assert again["records"]["PC1-PC2_main"] == summary["records"]["PC1-PC2_main"]
+    # same key -> same bits: the redone experiment equals the first run's
+    assert again["records"]["PC1-PC2_ctg"]["results"]["runs"] == \
+        summary["records"]["PC1-PC2_ctg"]["results"]["runs"]
+
+
+def test_quick_without_cached_baselines_skips_them(tiny_run, tmp_path, monkeypatch):
+    _, ckpt, _ = tiny_run
+    monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path / "cache"))
+    plan = quick_plan(**TINY)
+    from safecdt_jax.paper.plan import Experiment
+    from safecdt_jax.paper.run import run_experiment
+
+    logs: list[str] = []
+    e = Experiment("PC1-PC2", "baselines", "baselines", seeds=3, episodes=5)
+    assert run_experiment(e, plan, ckpt, tmp_path, progress=False, log=logs.append) is None
+    assert "skipped" in logs[-1] and not (tmp_path / "PC1-PC2_baselines.json").exists()
