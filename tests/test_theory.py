@@ -66,6 +66,11 @@ def test_certify_a_hand_written_results_file(tmp_path):
     assert high["thm41_violation_bound"] == pytest.approx(
         math.exp(-(30 - 26.75) ** 2 / (2 * np.var([31, 20, 25, 31], ddof=1))))
     assert cert["episodes"] == 4 and cert["critical_condition"] == 6.0
+    assert high["thm41_holds"] and low["thm41_holds"]  # 0.5 <= 0.83
+    # one episode of ten at B + 1: VR 0.1 against a bound exp(-26.9^2 / (2 * 96.1)) = 0.023
+    tail = theory.certificate({6.0: [0.0] * 9 + [31.0]}, 30.0, episodes=10)["conditions"][0]
+    assert tail["thm41_violation_bound"] == pytest.approx(0.0232, abs=1e-3)
+    assert not tail["thm41_holds"]
     table = theory.certificate_table(cert)
     assert "Critical budget B* =" in table and "| 18 | 4 |" in table
     source = tmp_path / "source.json"

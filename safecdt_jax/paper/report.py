@@ -218,6 +218,16 @@ def _figures(records: T.Records, data: dict, plan: PaperPlan, out: Path) -> list
     return lines
 
 
+def _seconds(record: Mapping[str, Any]) -> str:
+    """An experiment's wall time; for cached baselines, also the time they took to make."""
+    text = f"{record['seconds']:.0f}"
+    results = record["results"]
+    if results.get("cached"):
+        made = sum(m.get("train_seconds", 0) + m.get("eval_seconds", 0) for m in results["methods"])
+        text += f" (cached; made in {made:.0f} s on {results.get('created', '?')})"
+    return text
+
+
 def _machine() -> str:
     cpu = platform.processor() or platform.machine()
     try:
@@ -267,7 +277,7 @@ def write_report(out: str | os.PathLike, plan: PaperPlan, summary: Mapping[str, 
     figures = _figures(records, data, plan, out)
     versions = next((r["results"]["versions"] for r in records.values()
                      if "versions" in r["results"]), {})
-    timing = [[e.key, e.kind, f"{records[e.key]['seconds']:.0f}", records[e.key]["finished"]]
+    timing = [[e.key, e.kind, _seconds(records[e.key]), records[e.key]["finished"]]
               if e.key in records else [e.key, e.kind, "-", "not run"]
               for e in experiments(plan)]
     total = sum(r["seconds"] for r in records.values())
@@ -287,10 +297,11 @@ def write_report(out: str | os.PathLike, plan: PaperPlan, summary: Mapping[str, 
         "- Versions: " + ", ".join(f"{k} {v}" for k, v in versions.items() if k != "backend"),
         f"- CDT preset `{plan.preset}`, baselines preset `{plan.baseline_preset}`; counts: "
         f"{_counts(plan)}.",
-        f"- Experiment time: {total / 60:.1f} min in all (this invocation "
-        f"{summary['seconds'] / 60:.1f} min, of which data and pretraining "
-        f"{sum(summary['prepare_seconds'].values()) / 60:.1f} min); claims supported: {ok}, "
-        f"not supported: {no}, not run: {len(checked) - ok - no}.",
+        f"- Experiment time: {total / 60:.1f} min, the sum over the experiments below (the "
+        f"invocation that wrote this report took {summary['seconds'] / 60:.1f} min, reusing "
+        f"finished experiments; data and pretraining "
+        f"{sum(summary['prepare_seconds'].values()) / 60:.1f} min of it). Claims supported: "
+        f"{ok}, not supported: {no}, not run: {len(checked) - ok - no}.",
         "",
         "## Claims of the paper's section 5",
         "",

@@ -37,13 +37,14 @@ def prepare_pair(pair: str, plan: PaperPlan, progress: bool = True) -> Path:
 
 
 def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
-    """What identifies a pretrained checkpoint in an experiment's spec: its folder, task,
-    preset, update count and the fingerprint of the data it was trained on."""
+    """What identifies a pretrained checkpoint in an experiment's spec: its task, preset,
+    update count and the fingerprint of the data it was trained on (not its folder, so a
+    clone whose cache lives elsewhere reuses the committed experiments)."""
     from safecdt_jax.pretrain.checkpoint import read_meta
 
     meta = read_meta(ckpt)
-    return {"path": str(Path(ckpt).absolute()), "task": meta["task"], "preset": meta["preset"],
-            "step": int(meta["step"]), "data": meta["dataset"]["fingerprint"]}
+    return {"task": meta["task"], "preset": meta["preset"], "step": int(meta["step"]),
+            "data": meta["dataset"]["fingerprint"]}
 
 
 def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) -> dict[str, Any]:
@@ -96,12 +97,14 @@ def _matching_baselines(folder: Path, spec: Mapping[str, Any]) -> dict[str, Any]
 
 def _run_baselines(spec: Mapping[str, Any], plan: PaperPlan, progress: bool
                    ) -> dict[str, Any] | None:
+    """The pair's baselines results: the cached `baselines.json` when it matches the spec
+    (marked `cached`), else trained and evaluated now (`plan.train_baselines`), else None."""
     from safecdt_jax.baselines.job import run_baselines
 
     folder = baselines_folder(spec["pair"], spec["preset"])
     saved = _matching_baselines(folder, spec)
     if saved is not None or not plan.train_baselines:
-        return saved
+        return None if saved is None else dict(saved, cached=True)
     return run_baselines(spec["pair"], spec["algos"], spec["seeds"], spec["budget"],
                          spec["preset"], spec["episodes"], out=folder, progress=progress)
 
