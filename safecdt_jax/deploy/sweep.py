@@ -49,7 +49,9 @@ def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batch
     init_all = jax.vmap(jax.vmap(init, (0, 0, None)), (None, None, 0))
     run_all = jax.vmap(jax.vmap(episodes, (0, None, None, None, None)),
                        (0, None, None, env_axis, 0))
-    return jax.jit(init_all), jax.jit(run_all)
+    # The carry (adapters, optimiser, the online buffer: GBs at hundreds of seeds) is donated, so
+    # each chunk updates it in place instead of holding the old and the new copy.
+    return jax.jit(init_all), jax.jit(run_all, donate_argnums=0)
 
 
 def sweep(
