@@ -173,7 +173,7 @@ def plot_scatter(methods: Sequence[dict], budget: float, title: str,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from safecdt_jax.data.dataset import atomic_path
+    from safecdt_jax.report.figures import save_png
 
     fig, ax = plt.subplots(figsize=(5.5, 4))
     for m in methods:
@@ -186,11 +186,7 @@ def plot_scatter(methods: Sequence[dict], budget: float, title: str,
     ax.set_title(title)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", dpi=120)
-    plt.close(fig)
-    return path
+    return save_png(fig, path)
 
 
 def write_baselines(out: str | os.PathLike, results: dict[str, Any]) -> list[Path]:

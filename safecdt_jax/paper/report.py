@@ -146,7 +146,7 @@ def plot_figure2(data: Mapping[str, dict], plan: PaperPlan, path: str | os.PathL
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from safecdt_jax.data.dataset import atomic_path
+    from safecdt_jax.report.figures import save_png
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
     for pair, d in data["t5"].items():
@@ -175,11 +175,7 @@ def plot_figure2(data: Mapping[str, dict], plan: PaperPlan, path: str | os.PathL
     right.set_ylabel("cost change, second half - first")
     right.set_title("runtime step change")
     fig.tight_layout()
-    path = Path(path)
-    with atomic_path(path, suffix=".png") as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
-    return path
+    return save_png(fig, path, dpi=110)
 
 
 def _figures(records: T.Records, data: dict, plan: PaperPlan, out: Path) -> list[str]:

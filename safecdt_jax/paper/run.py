@@ -132,14 +132,15 @@ def load_record(path: Path, spec: Mapping[str, Any]) -> dict[str, Any] | None:
 
 
 def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path, folder: Path,
-                   progress: bool = True, log: Callable[[str], None] = print
-                   ) -> dict[str, Any] | None:
+                   progress: bool = True, log: Callable[[str], None] = print,
+                   ckpt_id: Mapping[str, Any] | None = None) -> dict[str, Any] | None:
     """The record of experiment `e` (`{"spec", "seconds", "finished", "results"}`), loaded from
     `folder/KEY.json` when finished with the same spec, else run and written there atomically.
-    None for baselines that are neither cached nor to be trained (`plan.train_baselines`)."""
+    None for baselines that are neither cached nor to be trained (`plan.train_baselines`).
+    `ckpt_id`: `checkpoint_identity(ckpt)`, when the caller has it."""
     from safecdt_jax.data.dataset import write_text_atomic
 
-    spec = experiment_spec(e, plan, checkpoint_identity(ckpt))
+    spec = experiment_spec(e, plan, ckpt_id or checkpoint_identity(ckpt))
     path = folder / f"{e.key}.json"
     record = load_record(path, spec)
     if record is not None:
@@ -191,8 +192,9 @@ def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
             log(f"{pair}: source data and pretrained CDT ({plan.preset} preset)")
             ckpt = prepare_pair(pair, plan, progress)
         prepare[pair] = time.perf_counter() - t0
+        ckpt_id = checkpoint_identity(ckpt)
         for e in (x for x in experiments(plan) if x.pair == pair):
-            record = run_experiment(e, plan, ckpt, folder, progress, log)
+            record = run_experiment(e, plan, ckpt, folder, progress, log, ckpt_id)
             if record is not None:
                 records[e.key] = record
     summary = {"records": records, "seconds": time.perf_counter() - start,

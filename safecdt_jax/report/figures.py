@@ -4,11 +4,23 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from safecdt_jax.data.dataset import atomic_path
+
+
+def save_png(fig, path: str | os.PathLike, dpi: int = 120) -> Path:
+    """Write a pyplot figure to `path` as PNG atomically (`data.dataset.atomic_path`) and close
+    it; returns the path."""
+    import matplotlib.pyplot as plt
+
+    with atomic_path(path, suffix=".png") as tmp:
+        fig.savefig(tmp, format="png", dpi=dpi)
+    plt.close(fig)
+    return Path(path)
 
 
 def _band(ax, values: np.ndarray, label: str, color=None) -> None:
@@ -55,11 +67,7 @@ def plot_deployment(
         ax.set_title(title)
         ax.legend(fontsize=8)
         fig.tight_layout()
-        path = os.path.join(out_dir, filename)
-        with atomic_path(path, suffix=".png") as tmp:
-            fig.savefig(tmp, dpi=120)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(os.fspath(save_png(fig, os.path.join(out_dir, filename))))
     return paths
 
 
@@ -101,7 +109,4 @@ def plot_robustness(runs: list[Mapping[str, Any]], field: str, out_path: str | o
         ax.legend(fontsize=8)
     fig.suptitle(title)
     fig.tight_layout()
-    with atomic_path(out_path, suffix=".png") as tmp:
-        fig.savefig(tmp, dpi=120)
-    plt.close(fig)
-    return os.fspath(out_path)
+    return os.fspath(save_png(fig, out_path))
