@@ -117,7 +117,7 @@ TINY = dict(pairs=("PC1-PC2",), study_pair="PC1-PC2", preset="tiny", horizon=10,
 def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, monkeypatch):
     _, ckpt, _ = tiny_run
     monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path / "cache"))
-    plan = quick_plan(**TINY)
+    plan = quick_plan(**TINY, baseline_algos=("cpq",))
     # cached baselines with the plan's settings and the checkpoint's data: Table 7 uses them
     folder = baselines_folder("PC1-PC2", plan.baseline_preset)
     folder.mkdir(parents=True)
@@ -130,7 +130,6 @@ def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, mo
              "stop_over_budget": True, "methods": [method],
              "data": {"fingerprint": checkpoint_identity(ckpt)["data"]}}
     (folder / "baselines.json").write_text(json.dumps(saved))
-    plan = quick_plan(**TINY, baseline_algos=("cpq",))
     out = tmp_path / "report"
     logs: list[str] = []
     summary = run_paper(plan, out, checkpoints={"PC1-PC2": ckpt}, progress=False,
