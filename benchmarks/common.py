@@ -47,6 +47,17 @@ def write_json(path: str | Path, payload: dict) -> None:
         json.dump(payload, f, indent=2)
 
 
+def write_markdown(path: str | Path, title: str, command: str, body: str) -> None:
+    """Writes a benchmark's result page atomically: `# title`, the command with the date and
+    machine that made it, then `body` (tables). `benchmarks.run_all` folds these pages into
+    BENCHMARKS.md."""
+    m = machine()
+    text = (f"# {title}\n\n`{command}`, {m['date']}, {m['cpus']}-core CPU ({m['host']}), "
+            f"jax {m['jax']} on {m['backend']}.\n\n{body.strip()}\n")
+    with atomic_path(path, suffix=".md") as tmp:
+        Path(tmp).write_text(text)
+
+
 def stats(xs: list[float]) -> dict:
     """Median, min, max and count of repeated measurements (what the peer tables print)."""
     return {"median": median(xs), "min": min(xs), "max": max(xs), "n": len(xs)}

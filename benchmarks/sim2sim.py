@@ -2,15 +2,21 @@
 policy.
 
     python -m benchmarks.sim2sim [--tasks CarGoal1,PointGoal1,CarCircle1,PointCircle1]
-        [--episodes 4] [--policy-episodes 32] [--out benchmarks/results/sim2sim.json]
+        [--episodes 4] [--policy-episodes 64] [--out benchmarks/results/sim2sim.json]
 
 1. Sensors: per observation dimension of the robot's sensors, the mean and std of ours and of
    Safety-Gymnasium's under uniform random actions (`episodes` x 500 steps each side), their std
    ratio and the 1-Wasserstein distance between the two marginals (in the dimension's units);
    and under one open-loop script from rest (`SCRIPT`), the readings at a few steps.
-2. Transfer: the last snapshot of each task's cost-limit-25 (Circle: 20) expert from the committed
+2. Turning (Car only): under open-loop action scripts from rest (constant, and i.i.d. switching
+   between straight (1, 1) and spin (1, -1) with probability p of straight, the regime a trained
+   Car expert drives in, its torques being saturated), the mean forward speed (-velocimeter y,
+   m/s) and yaw rate (gyro z, rad/s) over steps 100-500, ours against theirs.
+3. Transfer: the last snapshot of each task's cost-limit-25 (Circle: 20) expert from the committed
    snapshot files, `policy_episodes` episodes deterministic and stochastic in each simulator:
-   return, cost and goals, and the ratio theirs / ours.
+   return, cost (mean and median: a Circle expert's rare escapes from the circle cost 250-280
+   each, so the mean of 32 episodes swings with one or two of them) and goals, and the ratio
+   theirs / ours.
 Needs the peer venv (`python -m benchmarks.peers.setup`); writes a JSON and a markdown table.
 """
 
@@ -113,6 +119,37 @@ def script_readings(task: str) -> dict:
             "theirs": theirs[list(SCRIPT_STEPS)].tolist()}
 
 
+# Open-loop turning scripts: (name, probability of straight (1, 1) against spin (1, -1) per step),
+# or (name, constant action).
+TURNS = [("straight (1, 1)", (1.0, 1.0)), ("spin (1, -1)", (1.0, -1.0)),
+         ("one wheel (1, 0)", (1.0, 0.0)), ("(1, 0.01)", (1.0, 0.01)),
+         ("(1, -0.01)", (1.0, -0.01)), ("switching, p = 0.3", 0.3), ("switching, p = 0.5", 0.5),
+         ("switching, p = 0.7", 0.7), ("switching, p = 0.9", 0.9)]
+
+
+def turning(task: str, episodes: int = 4, steps: int = 500, seed: int = 0) -> list[dict]:
+    """Mean forward speed (m/s) and yaw rate (rad/s) over steps 100..`steps` per `TURNS` script,
+    ours and Safety-Gymnasium's (Car tasks: velocimeter y is dim 4, gyro z dim 8)."""
+    rng = np.random.default_rng(seed)
+    rows = []
+    for name, spec in TURNS:
+        if isinstance(spec, float):
+            straight = rng.uniform(size=steps) < spec
+            acts = np.where(straight[:, None], [[1.0, 1.0]], [[1.0, -1.0]])
+        else:
+            acts = np.tile([spec], (steps, 1))
+        script = acts.tolist()
+        ours = ours_trace(task, episodes, steps, seed, script)[:, 100:]
+        theirs = native({"cmd": "trace", "task": task, "episodes": episodes, "steps": steps,
+                         "seed": seed, "actions": script})["obs"][:, 100:]
+        row = {"script": name}
+        for side, x in (("ours", ours), ("theirs", theirs)):
+            row[f"{side}_speed"] = float(-x[..., 4].mean())
+            row[f"{side}_yaw_rate"] = float(x[..., 8].mean())
+        rows.append(row)
+    return rows
+
+
 def export_policy(snapshot_file: Path, index: int, path: Path) -> dict:
     """Writes snapshot `index` of an expert snapshot file as plain arrays for the native side
     (kernel_i, bias_i, std, mean, var, var_floor, clip); returns its metadata."""
@@ -190,6 +227,8 @@ def transfer(task: str, episodes: int) -> list[dict]:
                    "round": info["round"], "deterministic": det, "episodes": episodes}
             for k in ("return", "cost", "goals"):
                 row[f"ours_{k}"], row[f"theirs_{k}"] = float(o[k].mean()), float(t[k].mean())
+            row["ours_median_cost"] = float(np.median(o["cost"]))
+            row["theirs_median_cost"] = float(np.median(t["cost"]))
             row["return_ratio"] = row["theirs_return"] / row["ours_return"]
             row["cost_ratio"] = row["theirs_cost"] / max(row["ours_cost"], 1e-9)
             rows.append(row)
@@ -209,13 +248,21 @@ def report(results: dict) -> str:
         off = [r["name"] for r in rows if not 0.5 <= r["std_ratio"] <= 2.0]
         out += [f"std within a factor of 2: {len(rows) - len(off)} of {len(rows)}"
                 + (f" (off: {', '.join(off)})" if off else ""), ""]
+    for task, rows in results.get("turning", {}).items():
+        out += [f"### {task}: turning under open-loop scripts (steps 100-500)", "", markdown_table(
+            ["script", "speed ours", "speed theirs", "yaw rate ours", "yaw rate theirs"],
+            [[r["script"], f"{r['ours_speed']:.3f}", f"{r['theirs_speed']:.3f}",
+              f"{r['ours_yaw_rate']:.3f}", f"{r['theirs_yaw_rate']:.3f}"] for r in rows]), ""]
     if results.get("transfer"):
         out += ["### Expert transfer, ours -> Safety-Gymnasium", "", markdown_table(
-            ["task", "limit", "policy", "return ours", "return theirs", "ratio", "cost ours",
-             "cost theirs", "goals ours", "goals theirs"],
-            [[r["task"], f"{r['limit']:g}", "deterministic" if r["deterministic"] else
-              "stochastic", f"{r['ours_return']:.1f}", f"{r['theirs_return']:.1f}",
+            ["task", "limit", "episodes", "policy", "return ours", "return theirs", "ratio",
+             "cost ours", "cost theirs", "median cost ours", "median cost theirs",
+             "goals ours", "goals theirs"],
+            [[r["task"], f"{r['limit']:g}", r["episodes"], "deterministic" if r["deterministic"]
+              else "stochastic", f"{r['ours_return']:.1f}", f"{r['theirs_return']:.1f}",
               f"{r['return_ratio']:.2f}", f"{r['ours_cost']:.1f}", f"{r['theirs_cost']:.1f}",
+              f"{r.get('ours_median_cost', float('nan')):.1f}",
+              f"{r.get('theirs_median_cost', float('nan')):.1f}",
               f"{r['ours_goals']:.1f}", f"{r['theirs_goals']:.1f}"]
              for r in results["transfer"]]), ""]
     return "\n".join(out)
@@ -226,7 +273,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tasks", default="CarGoal1,PointGoal1,CarCircle1,PointCircle1")
     ap.add_argument("--episodes", type=int, default=4)
-    ap.add_argument("--policy-episodes", type=int, default=32)
+    ap.add_argument("--policy-episodes", type=int, default=64)
     ap.add_argument("--no-transfer", action="store_true")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/sim2sim.json")
     args = ap.parse_args()
@@ -236,6 +283,7 @@ def main() -> None:
         f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out"),
         "sensors": {task: sensor_stats(task, args.episodes) for task in tasks},
         "script": {task: script_readings(task) for task in tasks if task.startswith("Car")},
+        "turning": {task: turning(task) for task in tasks if task.startswith("Car")},
         "transfer": [] if args.no_transfer else
         [r for task in tasks for r in transfer(task, args.policy_episodes)]}
     results["seconds"] = time.perf_counter() - t

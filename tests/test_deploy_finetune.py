@@ -159,3 +159,30 @@ def test_stacked_variants_vmap_through_one_compiled_finetune(base, buf, lora):
     single, _, _ = run(key, lora, opt, base, buf, make_variant("safe_cdt"), lam=5.0)
     for x, y in zip(jax.tree.leaves(outs["safe_cdt"][0]), jax.tree.leaves(single), strict=True):
         np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+
+
+def test_adapter_gradient_skips_the_frozen_weights_gradients():
+    """Differentiating w.r.t. the adapters alone computes no weight gradient of the frozen base:
+    XLA's FLOP count of the LoRA step is about two forwards (the forward and the backward to the
+    activations, plus the merged q/v kernels' gradient), where the full-parameter gradient costs
+    about three. The deployment's FLOP floor counts the LoRA step this way."""
+    from safecdt_jax.data.windows import Windows
+    from safecdt_jax.model import dummy_batch
+
+    cfg = CDTConfig.preset("cpu", 72, 2, 1000)
+    params = init_cdt(jax.random.key(0), cfg)
+    adapters = init_lora(jax.random.key(1), params, cfg)
+    b = dummy_batch(cfg, 32)
+    zeros = jnp.zeros((32,), jnp.int32)
+    win = Windows(b["states"], b["actions"], b["returns_to_go"], b["costs_to_go"],
+                  jnp.zeros((32, cfg.seq_len)), b["timesteps"], b["mask"], zeros, zeros)
+    w = jnp.ones((32,))
+
+    def flops(fn, *args):
+        cost = jax.jit(fn).lower(*args).compile().cost_analysis()
+        return (cost[0] if isinstance(cost, list) else cost)["flops"]
+
+    forward = flops(lambda a: lora_loss(a, params, cfg, win, w), adapters)
+    adapter_grad = flops(jax.grad(lambda a: lora_loss(a, params, cfg, win, w)), adapters)
+    full_grad = flops(jax.grad(lambda p: lora_loss(adapters, p, cfg, win, w)), params)
+    assert adapter_grad / forward < 2.5 < full_grad / forward

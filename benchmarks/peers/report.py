@@ -221,18 +221,32 @@ def render(p: dict) -> str:
     if len(p["sides"]) == 1:
         parts.append("No accelerator was visible to JAX on this run, so there are no GPU "
                      "tables; on a machine with one, the same command adds them.")
-    parts.append(_baselines())
+    parts += [_saved(*entry) for entry in SAVED]
     parts.append(CAVEATS)
     return "\n\n".join(parts) + "\n"
 
 
-def _baselines() -> str:
-    """The offline baselines' section: the last `benchmarks.baselines_throughput` tables."""
+# Our-side benchmarks kept in their own result files: (section title, markdown file, command).
+SAVED = (
+    ("Offline baselines (BCQL, BEARL, CPQ) against OSRL", "baselines_throughput.md",
+     "python -m benchmarks.baselines_throughput"),
+    ("PPO-Lagrangian experts against OmniSafe", "expert_throughput.md",
+     "python -m benchmarks.expert_throughput --omnisafe"),
+    ("Where a CDT update's time goes", "update_profile.md",
+     "python -m benchmarks.update_profile --threads 1"),
+    ("The deployment at scale: seeds, episodes, devices", "deploy_scale.md",
+     "python -m benchmarks.deploy_scale"),
+    ("Compile time and the persistent cache", "compile_time.md",
+     "python -m benchmarks.compile_time"),
+)
+
+
+def _saved(title: str, name: str, command: str) -> str:
+    """One section from a benchmark's own markdown result (its first line, a title, dropped)."""
     from pathlib import Path
 
-    path = Path(__file__).resolve().parents[1] / "results" / "baselines_throughput.md"
+    path = Path(__file__).resolve().parents[1] / "results" / name
     if not path.exists():
-        return ("## Offline baselines (BCQL, BEARL, CPQ) against OSRL\n\nNot measured yet: "
-                "`python -m benchmarks.baselines_throughput`.")
-    body = path.read_text().split("\n", 1)[1].strip()  # without its own title
-    return "## Offline baselines (BCQL, BEARL, CPQ) against OSRL\n\n" + body
+        return f"## {title}\n\nNot measured yet: `{command}`."
+    body = path.read_text().split("\n", 1)[1].strip()
+    return f"## {title}\n\n{body}"

@@ -1,0 +1,138 @@
+"""Where one CDT update's time goes: the update taken apart, piece by piece, at each batch size.
+
+    python -m benchmarks.update_profile [--preset osrl] [--batches 64,256,2048] [--repeats 5]
+        [--threads 1]
+
+Each row is one jitted program timed on its own (median of `repeats` calls after compiling),
+on synthetic CarGoal-sized episodes (`benchmarks.train_throughput.synthetic_data`):
+- `update`: one whole pretraining update, as `train_chunk` runs it (window sampling, forward,
+  backward, AdamW + temperature step, dropout on);
+- `update, no dropout`: the same with the three dropout rates at 0 (no mask noise drawn);
+- `forward + backward`: `value_and_grad(cdt_loss)` on a fixed batch, dropout on;
+- `forward + backward, no dropout`; `forward`: the loss alone, dropout on;
+- `dropout noise`: the uniform draw of every mask of one forward (`_dropout_noise`);
+- `window sampling`: `sample_windows` alone; `optimizer`: clip + AdamW on param-shaped grads.
+Also XLA's own count (`cost_analysis`) of the update's FLOPs and bytes, and the GFLOP/s.
+With `--threads N` XLA runs on N threads pinned to N cores (`benchmarks.common.pin_threads`, as
+BENCHMARKS.md's peer comparison; OSRL's reference times are one thread's).
+Writes benchmarks/results/update_profile.{json,md}.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+from benchmarks.common import (
+    machine,
+    markdown_table,
+    median,
+    pin_threads,
+    time_call,
+    write_json,
+    write_markdown,
+)
+
+OUT = Path("benchmarks/results/update_profile.json")
+
+
+def programs(preset: str, batch: int) -> dict:
+    """Name -> (jitted fn, args) for every piece of one update at `batch`."""
+    from benchmarks.train_throughput import SIZES, synthetic_data
+    from safecdt_jax.data import sample_windows
+    from safecdt_jax.model import CDTConfig, OptimConfig, init_train_state
+    from safecdt_jax.model.cdt import _dropout_noise, _dropout_shapes
+    from safecdt_jax.model.loss import cdt_loss
+    from safecdt_jax.model.optim import make_optimizer
+    from safecdt_jax.pretrain import PretrainConfig
+    from safecdt_jax.pretrain.loop import make_update
+
+    obs, act, horizon = SIZES["CarGoal"]
+    cfg = CDTConfig.preset(preset, obs, act, horizon)
+    quiet = cfg.replace(embedding_dropout=0.0, attention_dropout=0.0, residual_dropout=0.0)
+    data = synthetic_data(obs, act, horizon)
+    weights = jnp.full(data.lengths.shape, 1.0 / data.lengths.shape[0])
+    pre = PretrainConfig(batch_size=batch)
+    state = init_train_state(jax.random.key(0), cfg)
+    key = jax.random.key(1)
+
+    def windows(k):
+        return sample_windows(k, data, batch, cfg.seq_len, weights,
+                              reward_scale=cfg.reward_scale, cost_scale=cfg.cost_scale)._asdict()
+
+    fixed = jax.jit(windows)(key)
+
+    def update(c):
+        return jax.jit(make_update(c, OptimConfig(), pre))
+
+    def grad(c):
+        return jax.jit(lambda p, b, k: jax.value_and_grad(cdt_loss, has_aux=True)(
+            p, state.log_temperature, c, b, k))
+
+    txs = make_optimizer(OptimConfig())
+    shapes = _dropout_shapes(cfg, batch, cfg.seq_len)
+    return {
+        "update": (update(cfg), (state, key, data, weights)),
+        "update, no dropout": (update(quiet), (state, key, data, weights)),
+        "forward + backward": (grad(cfg), (state.params, fixed, key)),
+        "forward + backward, no dropout": (grad(quiet), (state.params, fixed, key)),
+        "forward": (jax.jit(lambda p, b, k: cdt_loss(p, state.log_temperature, cfg, b, k)[0]),
+                    (state.params, fixed, key)),
+        "dropout noise": (jax.jit(lambda k: _dropout_noise(k, shapes)), (key,)),
+        "window sampling": (jax.jit(windows), (key,)),
+        "optimizer": (jax.jit(lambda g, s, p: txs.model.update(g, s, p)[0]),
+                      (state.params, state.opt_state, state.params)),
+    }
+
+
+def xla_cost(fn, args) -> dict:
+    """XLA's FLOP and byte counts of one compiled program."""
+    cost = fn.lower(*args).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, list) else cost
+    return {"gflop": cost.get("flops", 0.0) / 1e9,
+            "gbytes": cost.get("bytes accessed", 0.0) / 1e9}
+
+
+def main() -> None:
+    """Times every piece at every batch and writes the table and the JSON."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--preset", default="osrl")
+    ap.add_argument("--batches", default="64,256,2048")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=0, help="1: XLA on one thread; 0: default")
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    if args.threads:
+        pin_threads(args.threads)
+    cells, rows = [], []
+    for batch in (int(b) for b in args.batches.split(",")):
+        progs = programs(args.preset, batch)
+        cost = xla_cost(*progs["update"])
+        times = {}
+        for name, (fn, fargs) in progs.items():
+            _, runs = time_call(lambda fn=fn, fargs=fargs: fn(*fargs), repeats=args.repeats)
+            times[name] = median(runs) * 1e3
+            print(f"batch {batch}: {name} {times[name]:.1f} ms", flush=True)
+        cells.append({"batch": batch, "ms": times, "xla": cost,
+                      "update_gflop_per_s": cost["gflop"] / (times["update"] / 1e3)})
+        full = times["update"]
+        for name, ms in times.items():
+            rows.append([batch, name, f"{ms:.1f}", f"{100 * ms / full:.0f}%"])
+        rows.append([batch, "XLA count of the update", f"{cost['gflop']:.1f} GFLOP, "
+                     f"{cost['gbytes']:.2f} GB", f"{cost['gflop'] / (full / 1e3):.0f} GFLOP/s"])
+    text = markdown_table(["batch", "program", "ms (median)", "share of the update"], rows)
+    command = "python -m benchmarks.update_profile " + " ".join(sys.argv[1:])
+    write_json(args.out, {"machine": machine(), "preset": args.preset, "threads": args.threads,
+                          "cells": cells, "command": command})
+    write_markdown(args.out.with_suffix(".md"), "Where a CDT update's time goes", command,
+                   f"`{args.preset}` preset, CarGoal sizes, XLA threads: "
+                   f"{args.threads or 'default'}.\n\n{text}")
+    print(text)
+
+
+if __name__ == "__main__":
+    main()
