@@ -1,7 +1,7 @@
 """Where one CDT update's time goes: the update taken apart, piece by piece, at each batch size.
 
     python -m benchmarks.update_profile [--preset osrl] [--batches 64,256,2048] [--repeats 5]
-        [--threads 1]
+        [--threads 1] [--osrl] [--pieces]
 
 Each row is one jitted program timed on its own (median of `repeats` calls after compiling),
 on synthetic CarGoal-sized episodes (`benchmarks.train_throughput.synthetic_data`):
@@ -10,8 +10,11 @@ on synthetic CarGoal-sized episodes (`benchmarks.train_throughput.synthetic_data
 - `update, no dropout`: the same with the three dropout rates at 0 (no mask noise drawn);
 - `forward + backward`: `value_and_grad(cdt_loss)` on a fixed batch, dropout on;
 - `forward + backward, no dropout`; `forward`: the loss alone, dropout on;
-- `dropout noise`: the uniform draw of every mask of one forward (`_dropout_noise`);
+- `dropout noise`: the random draw of every mask of one forward (`_dropout_noise`);
 - `window sampling`: `sample_windows` alone; `optimizer`: clip + AdamW on param-shaped grads.
+With `--osrl`, OSRL's own `CDTTrainer.train_one_step` (PyTorch, the `osrl` peer venv, the same
+thread count and cores) on a fixed batch, alternated with our `update`, and the speedup
+(median OSRL / median ours). `--pieces` off times only the whole update (and OSRL).
 Also XLA's own count (`cost_analysis`) of the update's FLOPs and bytes, and the GFLOP/s.
 With `--threads N` XLA runs on N threads pinned to N cores (`benchmarks.common.pin_threads`, as
 BENCHMARKS.md's peer comparison; OSRL's reference times are one thread's).
@@ -22,6 +25,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import jax
@@ -89,6 +94,58 @@ def programs(preset: str, batch: int) -> dict:
     }
 
 
+# Op families of the breakdown: the first family whose keyword occurs in an op's JAX op name
+# (HLO metadata) takes it; matrix products are told by the HLO instruction itself.
+FAMILIES = (
+    ("window sampling", ("sample_windows", "gather", "dynamic_slice")),
+    # threefry is inlined: its fusions are named by their bit operations
+    ("dropout RNG", ("threefry", "random", "_uniform", "_randint", "bitcast_convert_type",
+                     "iota_2x32", "/xor", "shift_left", "shift_right")),
+    ("GELU", ("erf", "gelu")),
+    ("attention softmax, mask, head transposes", ("/attn/",)),
+    ("LayerNorm", ("/ln1/", "/ln2/", "embed_norm", "out_norm", "layer_norm")),
+    ("optimizer", ("adam", "clip_by_global_norm", "optax", "apply_updates", "global_norm")),
+)
+
+
+def op_breakdown(fn, args, calls: int = 3) -> dict[str, float]:
+    """Milliseconds per call by op family, from a `jax.profiler` trace of `calls` calls.
+
+    XLA:CPU traces every executed HLO instruction (thunk); each is put in a family by its
+    instruction (matrix products: `dot` and YNNPACK fusions) or by the JAX op name in its
+    metadata (`FAMILIES`), the rest is `other elementwise`.
+    """
+    import collections
+    import glob
+    import gzip
+    import json
+    import re
+
+    compiled = fn.lower(*args).compile()
+    meta = dict(re.findall(r"%([\w.\-]+) = .*?op_name=\"([^\"]*)\"", compiled.as_text()))
+    jax.block_until_ready(fn(*args))
+    with tempfile.TemporaryDirectory() as tmp:
+        with jax.profiler.trace(tmp, create_perfetto_trace=True):
+            for _ in range(calls):
+                jax.block_until_ready(fn(*args))
+        trace = glob.glob(f"{tmp}/**/perfetto_trace.json.gz", recursive=True)[0]
+        events = json.load(gzip.open(trace))
+    events = events["traceEvents"] if isinstance(events, dict) else events
+    out: dict[str, float] = collections.Counter()
+    for e in events:
+        name = e.get("name", "")
+        if e.get("ph") != "X" or name not in meta:
+            continue
+        op = meta[name]
+        if name.startswith(("dot", "ynn_fusion")):
+            family = "matrix products"
+        else:
+            family = next((f for f, keys in FAMILIES if any(k in op for k in keys)),
+                          "other elementwise")
+        out[family] += e.get("dur", 0.0) / 1e3 / calls
+    return dict(sorted(out.items(), key=lambda kv: -kv[1]))
+
+
 def xla_cost(fn, args) -> dict:
     """XLA's FLOP and byte counts of one compiled program."""
     cost = fn.lower(*args).compile().cost_analysis()
@@ -104,30 +161,70 @@ def main() -> None:
     ap.add_argument("--batches", default="64,256,2048")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=0, help="1: XLA on one thread; 0: default")
+    ap.add_argument("--osrl", action="store_true", help="also time OSRL's train_one_step")
+    ap.add_argument("--no-pieces", dest="pieces", action="store_false",
+                    help="time the whole update only")
     ap.add_argument("--out", type=Path, default=OUT)
     args = ap.parse_args()
     if args.threads:
         pin_threads(args.threads)
-    cells, rows = [], []
+    peer = None
+    if args.osrl:
+        from benchmarks.run_all import Peer, dims
+
+        peer = Peer("osrl", Path(tempfile.gettempdir()) / "update_profile_osrl.log")
+    cells, rows, fam_rows, vs_rows = [], [], [], []
     for batch in (int(b) for b in args.batches.split(",")):
         progs = programs(args.preset, batch)
+        if not args.pieces:
+            progs = {"update": progs["update"]}
         cost = xla_cost(*progs["update"])
+        families = op_breakdown(*progs["update"])
         times = {}
         for name, (fn, fargs) in progs.items():
             _, runs = time_call(lambda fn=fn, fargs=fargs: fn(*fargs), repeats=args.repeats)
             times[name] = median(runs) * 1e3
             print(f"batch {batch}: {name} {times[name]:.1f} ms", flush=True)
-        cells.append({"batch": batch, "ms": times, "xla": cost,
-                      "update_gflop_per_s": cost["gflop"] / (times["update"] / 1e3)})
+        cell = {"batch": batch, "ms": times, "xla": cost, "families_ms": families,
+                "update_gflop_per_s": cost["gflop"] / (times["update"] / 1e3)}
+        if peer is not None:  # alternated: OSRL's step, then our update
+            fn, fargs = progs["update"]
+            steps = max(1, 512 // batch)
+            ours, theirs = [], []
+            for _ in range(args.repeats):
+                a = peer("train", batch=batch, steps=steps, **dims("CarGoal1"))
+                theirs.append(1e3 * a["seconds"] / a["steps"])
+                t = time.perf_counter()
+                jax.block_until_ready(fn(*fargs))
+                ours.append(1e3 * (time.perf_counter() - t))
+            cell["osrl_ms"], cell["ours_alternated_ms"] = theirs, ours
+            cell["speedup"] = median(theirs) / median(ours)
+            vs_rows.append([batch, f"{median(theirs):.1f}", f"{median(ours):.1f}",
+                            f"{cell['speedup']:.2f}x"])
+            print(f"batch {batch}: OSRL {median(theirs):.1f} ms, ours {median(ours):.1f} ms",
+                  flush=True)
+        cells.append(cell)
         full = times["update"]
         for name, ms in times.items():
             rows.append([batch, name, f"{ms:.1f}", f"{100 * ms / full:.0f}%"])
         rows.append([batch, "XLA count of the update", f"{cost['gflop']:.1f} GFLOP, "
                      f"{cost['gbytes']:.2f} GB", f"{cost['gflop'] / (full / 1e3):.0f} GFLOP/s"])
+        traced = sum(families.values())
+        fam_rows += [[batch, name, f"{ms:.1f}", f"{100 * ms / traced:.0f}%"]
+                     for name, ms in families.items()]
     text = markdown_table(["batch", "program", "ms (median)", "share of the update"], rows)
+    if vs_rows:
+        text = ("Against OSRL (alternated, median of each side):\n\n" + markdown_table(
+            ["batch", "OSRL train_one_step ms", "ours update ms", "speedup"], vs_rows)
+            + "\n\nOur update taken apart:\n\n" + text)
+    text += ("\n\nThe update by op family (a `jax.profiler` trace of 3 calls; the share of the "
+             "traced op time):\n\n" + markdown_table(["batch", "op family", "ms per update",
+                                                    "share"], fam_rows))
     command = "python -m benchmarks.update_profile " + " ".join(sys.argv[1:])
     write_json(args.out, {"machine": machine(), "preset": args.preset, "threads": args.threads,
                           "cells": cells, "command": command})
+    if peer is not None:
+        peer.close()
     write_markdown(args.out.with_suffix(".md"), "Where a CDT update's time goes", command,
                    f"`{args.preset}` preset, CarGoal sizes, XLA threads: "
                    f"{args.threads or 'default'}.\n\n{text}")

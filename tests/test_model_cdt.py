@@ -90,6 +90,21 @@ def test_dropout_randomness(params):
         apply_eager(params, CFG, batch, train=True)
 
 
+def test_dropout_masks_drop_the_rate_and_keep_the_mean():
+    from safecdt_jax.model.cdt import _dropout, _dropout_noise
+
+    noise = _dropout_noise(jax.random.key(0), {"a": (400, 500), "b": (7, 3)})
+    assert noise["a"].dtype == jnp.uint16 and noise["b"].shape == (7, 3)
+    x = jnp.ones((400, 500))
+    for rate in (0.1, 0.5):
+        y = np.asarray(_dropout(x, rate, noise["a"]))
+        dropped = (y == 0).mean()
+        assert abs(dropped - rate) < 4 * np.sqrt(rate * (1 - rate) / y.size)
+        np.testing.assert_allclose(y[y > 0], 1.0 / (1.0 - rate), rtol=1e-6)
+        assert abs(y.mean() - 1.0) < 0.01
+    assert _dropout(x, 0.0, noise["a"]) is x and _dropout(x, 0.1, None) is x
+
+
 def test_causality(params):
     batch = make_batch(3)
     base = apply_cdt(params, CFG, batch)

@@ -12,6 +12,9 @@ interpreter as published:
   Safety-Gymnasium in one process) it also gets `safety-gymnasium==1.0.0` with the same mujoco and
   gymnasium pins, minus pygame (rendering only; 2.1.0 has no Python 3.11 wheel). The worker lets
   it import on 3.11 by relaxing, at run time, Python 3.11's ban on ndarray dataclass defaults.
+  For the experts' peer (`benchmarks.expert_throughput --omnisafe`) it also gets
+  `omnisafe==0.5.0` without its dependencies (they would lift numpy past 2 and pandas to 3,
+  which break safety-gymnasium 1.0.0) plus what its PPOLag imports.
 
     python -m benchmarks.peers.setup [--root .peers] [--force]
 """
@@ -36,6 +39,8 @@ SPECS = {
          "gymnasium-robotics==1.2.2", "pettingzoo==1.24.3", "jax-jumpy==1.0.0"],
         ["numpy<2", "scipy", "pyyaml", "tqdm", "tensorboard", "wandb", "gymnasium==0.28.1",
          "mujoco==2.3.3", "xmltodict", "imageio", "glfw", "PyOpenGL", "Jinja2"],
+        ["--no-deps", "omnisafe==0.5.0"],
+        ["numpy<2", "pandas<3", "matplotlib<3.11", "seaborn", "moviepy", "typer", "gdown"],
     ]),
 }
 
