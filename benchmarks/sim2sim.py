@@ -23,6 +23,7 @@ Needs the peer venv (`python -m benchmarks.peers.setup`); writes a JSON and a ma
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import subprocess
 import tempfile
@@ -68,20 +69,33 @@ def ours_trace(task: str, episodes: int, steps: int, seed: int, actions=None) ->
     import jax
     import jax.numpy as jnp
 
+    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
+    if actions is None:
+        return np.asarray(_trace_program(task, steps, False)(keys, jnp.zeros((steps, 2))))
+    return np.asarray(_trace_program(task, steps, True)(keys, jnp.asarray(actions, jnp.float32)))
+
+
+@functools.cache
+def _trace_program(task: str, steps: int, scripted: bool):
+    """Jitted `(keys, script) -> observations`; the script is an argument, so every script of
+    a task runs one compiled program."""
+    import jax
+
     from safecdt_jax import envs
     from safecdt_jax.envs.rollout import scan_episode, uniform_policy
 
     env, params = envs.make(task)
-    script = None if actions is None else jnp.asarray(actions, jnp.float32)
 
-    def policy(key, state):
-        return uniform_policy(key, state) if script is None else script[state.info["steps"]]
+    def run(keys, script):
+        def policy(key, state):
+            return script[state.info["steps"]] if scripted else uniform_policy(key, state)
 
-    def episode(key):
-        return scan_episode(env, params, key, policy, lambda s: s.obs, steps)[1]
+        def episode(key):
+            return scan_episode(env, params, key, policy, lambda s: s.obs, steps)[1]
 
-    keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-    return np.asarray(jax.jit(jax.vmap(episode))(keys))
+        return jax.vmap(episode)(keys)
+
+    return jax.jit(run)
 
 
 def wasserstein1(a: np.ndarray, b: np.ndarray) -> float:

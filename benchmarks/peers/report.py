@@ -129,7 +129,8 @@ def _floor(f: dict) -> str:
     g = f["gemm"]
     names = {"peer": "OSRL (full forward on the unpadded prefix)",
              "zero_shot": "ours zero-shot (trimmed forward, padded window)",
-             "safe_cdt": "ours Safe-CDT (+ LoRA: 10 steps x 32 windows per episode, 3x forward)"}
+             "safe_cdt": "ours Safe-CDT (+ LoRA: 10 steps x 32 windows per episode, "
+                         "2x forward + the adapted kernels' dW)"}
     deploy = markdown_table(
         ["side", "model MFLOP per env step", "floor for 15 x 50, s", "measured, s",
          "share of peak"],
