@@ -235,7 +235,8 @@ def main() -> None:
           f"{time.perf_counter() - start:.0f} s\n\n{table}\n\nzero-shot sweep\n\n{zs_table}"
           f"\n\nforced CPU devices\n\n{dev_table}")
     # When each part was last measured (the others keep the saved results and dates).
-    measured = saved.get("measured", {})
+    measured = saved.get("measured") or {  # results saved before dates were kept per part
+        part: saved["machine"]["date"] for part in ("scale", "zero_shot") if "machine" in saved}
     measured.update({part: machine()["date"] for part in only})
     write_json(args.out, {"machine": machine(), "measured": measured, "task": args.task,
                           "rows": rows,

@@ -98,9 +98,9 @@ def programs(preset: str, batch: int) -> dict:
 # (HLO metadata) takes it; matrix products are told by the HLO instruction itself.
 FAMILIES = (
     ("window sampling", ("sample_windows", "gather", "dynamic_slice")),
-    # threefry is inlined: its fusions are named by their bit operations
+    # threefry runs as a while loop over its rounds; its fusions carry the loop's op names
     ("dropout RNG", ("threefry", "random", "_uniform", "_randint", "bitcast_convert_type",
-                     "iota_2x32", "/xor", "shift_left", "shift_right")),
+                     "iota_2x32", "/while", "closed_call", "/xor", "shift_left", "shift_right")),
     ("GELU", ("erf", "gelu")),
     ("attention softmax, mask, head transposes", ("/attn/",)),
     ("LayerNorm", ("/ln1/", "/ln2/", "embed_norm", "out_norm", "layer_norm")),

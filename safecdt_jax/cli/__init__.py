@@ -13,11 +13,12 @@ from safecdt_jax.cli import (
     theory,  # noqa: F401
     train,  # noqa: F401
 )
-from safecdt_jax.cli.app import app
+from safecdt_jax.cli.app import app, enable_persistent_cache
 
 
 def main() -> None:
-    """Console-script entry point."""
+    """Console-script entry point: every command keeps its compiled programs across runs."""
+    enable_persistent_cache()
     app()
 
 

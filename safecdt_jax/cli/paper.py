@@ -5,7 +5,7 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app
+from safecdt_jax.cli.app import app, enable_persistent_cache
 
 
 @app.command()
@@ -38,20 +38,8 @@ def paper(
     except ValueError as e:
         typer.echo(f"error: {e}", err=True)
         raise typer.Exit(1) from e
-    _persistent_cache()
+    enable_persistent_cache()
     folder = out or (Path("runs") / "paper-quick" if quick else Path("report"))
     summary = run_paper(plan, folder, log=typer.echo)
     typer.echo(f"wrote {folder / 'REPORT.md'} ({summary['seconds'] / 60:.1f} min)")
 
-
-def _persistent_cache() -> None:
-    """Keep compiled programs across runs (a resumed suite skips its compiles)."""
-    import os
-
-    import jax
-
-    from safecdt_jax.paths import cache_root
-
-    if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
-        jax.config.update("jax_compilation_cache_dir", str(cache_root() / "xla"))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
