@@ -33,7 +33,8 @@ _B_INIT = nn.initializers.zeros
 
 
 class _Dense(nn.Dense):
-    """`nn.Dense` (same params, same outputs) that multiplies as one 2-D matrix product.
+    """`nn.Dense` (same params; the same outputs up to float summation order) that multiplies as
+    one 2-D matrix product.
 
     The leading axes are flattened first, so XLA sees `[B*N, D_in] @ [D_in, D_out]`. On the
     CPU that is what makes the backward fast: the weight gradient of a [B, N, D] input contracts
