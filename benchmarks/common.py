@@ -58,6 +58,22 @@ def write_markdown(path: str | Path, title: str, command: str, body: str) -> Non
         Path(tmp).write_text(text)
 
 
+def run_script(code: str, env: dict | None = None, tail: int = 2000) -> dict:
+    """Runs `python -c code` in a fresh process at the repository root and returns the JSON the
+    script printed after `RESULT ` (a fresh process: its own JAX backend, flags and peak RSS).
+    RuntimeError `exit N: <last `tail` characters of stderr>` if it failed or printed none."""
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=root,
+                          env=env)
+    line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT")]
+    if proc.returncode or not line:
+        raise RuntimeError(f"exit {proc.returncode}: {proc.stderr.strip()[-tail:]}")
+    return json.loads(line[0].split(" ", 1)[1])
+
+
 def stats(xs: list[float]) -> dict:
     """Median, min, max and count of repeated measurements (what the peer tables print)."""
     return {"median": median(xs), "min": min(xs), "max": max(xs), "n": len(xs)}

@@ -15,13 +15,11 @@ benchmarks/results/compile_time.json.
 from __future__ import annotations
 
 import argparse
-import json
 import os
-import subprocess
 import sys
 import tempfile
 
-from benchmarks.common import machine, markdown_table, write_json, write_markdown
+from benchmarks.common import machine, markdown_table, run_script, write_json, write_markdown
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -61,11 +59,7 @@ def one_process(cache: str, args) -> dict:
     """One fresh process compiling (or loading) the programs; its timings."""
     code = _PROC.format(root=ROOT, cache=cache, task=args.task, preset=args.preset,
                         episodes=args.episodes, seeds=args.seeds)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
-    line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT")]
-    if proc.returncode or not line:
-        raise RuntimeError(f"exit {proc.returncode}: {proc.stderr.strip()[-2000:]}")
-    return json.loads(line[0].split(" ", 1)[1])
+    return run_script(code)
 
 
 def main() -> None:

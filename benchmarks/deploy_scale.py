@@ -27,14 +27,20 @@ The model is the `cpu` preset with random weights (cost does not depend on the w
 import argparse
 import json
 import os
-import subprocess
 import sys
 import time
 
 import jax
 import numpy as np
 
-from benchmarks.common import machine, markdown_table, median, write_json, write_markdown
+from benchmarks.common import (
+    machine,
+    markdown_table,
+    median,
+    run_script,
+    write_json,
+    write_markdown,
+)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -95,13 +101,10 @@ def devices_point(task: str, n_devices: int, seeds: int, episodes: int, repeats:
     flags = os.environ.get("XLA_FLAGS", "")
     env = {**os.environ,
            "XLA_FLAGS": f"{flags} --xla_force_host_platform_device_count={n_devices}".strip()}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT,
-                          env=env)
-    line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT")]
-    if proc.returncode or not line:
-        return {"devices": n_devices, "error": f"exit {proc.returncode}: "
-                f"{proc.stderr.strip()[-300:]}"}
-    out = {"seeds": seeds, "episodes": episodes, **json.loads(line[0].split(" ", 1)[1])}
+    try:
+        out = {"seeds": seeds, "episodes": episodes, **run_script(code, env=env, tail=300)}
+    except RuntimeError as e:
+        return {"devices": n_devices, "error": str(e)}
     out["median_s"] = median(out["runs_s"])
     return out
 
@@ -109,12 +112,10 @@ def devices_point(task: str, n_devices: int, seeds: int, episodes: int, repeats:
 def scale_point(task: str, seeds: int, episodes: int, run: int) -> dict:
     """One (seeds, episodes) point in a fresh process (see the module docstring)."""
     code = _POINT.format(root=ROOT, task=task, seeds=seeds, episodes=episodes, run=run)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT)
-    line = [x for x in proc.stdout.splitlines() if x.startswith("RESULT")]
-    if proc.returncode or not line:
-        return {"seeds": seeds, "episodes": episodes,
-                "error": f"exit {proc.returncode}: {proc.stderr.strip()[-300:]}"}
-    out = {"seeds": seeds, "episodes": episodes, **json.loads(line[0].split(" ", 1)[1])}
+    try:
+        out = {"seeds": seeds, "episodes": episodes, **run_script(code, tail=300)}
+    except RuntimeError as e:
+        return {"seeds": seeds, "episodes": episodes, "error": str(e)}
     steps_per_episode = seeds * 1000  # CarGoal2's horizon; the cost is per scanned step
     out["env_steps_per_s"] = steps_per_episode / out["episode_s"]
     out["deployment_min"] = out["episode_s"] * episodes / 60
