@@ -33,8 +33,9 @@ from safecdt_jax.envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State  # n
 
 # Per robot: bump when that robot's dynamics or sensors, or the task rules it runs under, change
 # (models, traction, sensor models, costs, layouts). Cached data and expert snapshots made under
-# another version are rebuilt. Car 3: the caster's slip and the chassis chatter (sim2sim).
-PHYSICS_VERSIONS = {"Car": 3, "Point": 2}
+# another version are rebuilt. Car 3: the caster's slip and the chassis chatter (sim2sim); Car 4:
+# contact forces with friction limits (turning on one wheel, mixed drive).
+PHYSICS_VERSIONS = {"Car": 4, "Point": 2}
 
 NAMES = tuple(f"{robot}{task}{level}" for robot in ("Car", "Point") for task in ("Goal", "Circle")
               for level in (1, 2))

@@ -151,34 +151,40 @@ class PointRobot(Robot):
 class CarRobot(Robot):
     """The Car: a planar chassis driven by wheel traction computed in JAX every substep.
 
-    A driven wheel (contact at body (+-0.13, 0.1)) under torque tau spins freely at the rim speed
-    r tau / c_w (its hinge damping c_w balances the torque within milliseconds, the wheel's inertia
-    being tiny), and drags the chassis toward that speed through a slip force
-    k_t (N / N_0) (rim speed - ground speed) capped at mu N. Sideways it grips with
-    -mu N tanh(v_lat / v_slip).
-    The passive ball caster (contact at body (0, -0.1)) drags with -(N_c / N_c0) b_c v capped at
-    mu N_c, and tyre scrub resists yawing with -b_yaw omega.
-    Normal loads: the statics of the centre of mass (N_0, N_c0) plus load transfer. The net
-    ground force F of the previous substep, acting at the floor below the centre of mass, pitches
-    the chassis: a forward push (toward body -y) moves F h / L of load from the leading caster onto
-    the trailing drive axle, a backward push moves it off the axle. Forward pushes therefore grip
-    harder than backward ones, which is what makes the reference car drift forward under random
-    bang-bang actions (about 3 m per 1000 steps).
-    The constants are calibrated against the reference: 0.73 m/s after 4 s at a = (1, 1),
-    0.83 m/s at a = (-1, -1), 1.24 rad/s at a = (1, -1), and the per-step response and drift of
-    native MuJoCo under uniform random actions. See docs/ENVIRONMENTS.md.
+    Every contact force below is the quasi-static balance of a MuJoCo soft contact whose slip
+    force grows linearly with the slip speed and saturates at `sliding` x mu N (the solver's
+    regularisation leaves native MuJoCo's sliding force at 0.76-0.83 of the cone's mu N),
+    measured contact by contact in native MuJoCo (`mj_contactForce`, docs/ENVIRONMENTS.md):
+    - A driven wheel (contact at body (+-0.13, 0.1)) under torque tau would spin freely at the
+      rim speed r tau / c_w (its hinge damping c_w balances the torque within milliseconds, the
+      wheel's inertia being tiny); its contact pushes the chassis with
+      k_w (N / N_0) (rim speed - ground speed) lengthwise (k_w: the contact's slip gain in series
+      with the hinge damping) and resists sideways slip with -k_side (N / N_0) v_lat; the two
+      share one friction circle of radius `sliding` mu N. A wheel without torque therefore
+      brakes, and a driven wheel whose slip is large (turning on one wheel, spinning) pushes
+      with its friction limit, not with its torque: what makes native MuJoCo's car turn on one
+      wheel at 0.18 of its straight speed.
+    - The passive ball caster (contact at body (0, -0.1)) rolls at `caster_roll` of the no-slip
+      rate while its drag, `caster_roll` c_b / r^2 (N_c / N_c0) v, is under its friction
+      limit, and slides at the limit beyond (about 0.3 m/s): a Coulomb drag at driving speeds.
+    Normal loads: the statics of the centre of mass (N_0, N_c0) plus a load transfer: the net
+    ground force F of the previous substep, acting at the floor below the centre of mass, moves
+    F h / L of load between the caster and the drive axle.
+    The constants are the native contact measurements (straight and spin speeds, one-wheel and
+    mixed-drive turning, the caster's spin) and the per-step response of native MuJoCo under
+    uniform random actions; see docs/ENVIRONMENTS.md.
     """
 
     wheel_radius: float = 0.05  # m
     torque_limit: float = 0.02  # N m: the reference actuator force range (sets the action scale)
     wheel_damping: float = 0.001  # N m s/rad: the reference hinge damping (rim speed 1 m/s)
-    slip_gain: float = 0.06  # N s/m: k_t per wheel at its static load (calibrated)
-    caster_drag: float = 0.04  # N s/m: b_c, caster leading (forward, -y), at its static load
-    caster_drag_trailing: float = 0.025  # N s/m: caster trailing (backward, +y)
-    caster_drag_side: float = 0.005  # N s/m: caster sideways
-    yaw_scrub: float = 0.01  # N m s: b_yaw, tyre scrub against yawing (calibrated)
-    slip_speed: float = 0.4  # m/s: sideways slip at which tyre grip saturates
-    load_transfer: float = 0.38  # h / L: effective centre-of-mass height over wheelbase
+    slip_gain: float = 0.25  # N s/m: k_w per wheel at its static load (native: 0.23-0.4)
+    side_gain: float = 0.557  # N s/m: k_side per wheel at its static load (native contact slip)
+    sliding: float = 0.78  # a wheel's sliding force / (mu N) (native: 0.66-0.80)
+    caster_gain: float = 0.3  # N s/m: the rolling caster's drag at its static load (native 0.36)
+    caster_sliding: float = 0.65  # the caster's sliding force / (mu N_c) (native: 0.68-0.88)
+    yaw_scrub: float = 0.005  # N m s: contact scrub against yawing beyond the contact forces
+    load_transfer: float = 0.45  # h / L: effective centre-of-mass height over wheelbase
     friction: float = 1.0  # tyre-floor friction coefficient, as the reference's floor
     caster_roll: float = 0.9  # rolling fraction of the ball (native: 0.90-0.92 below the cap)
     caster_spin_cap: float = 6.0  # rad/s: the ball slides beyond (native: 5.4-6.1 rad/s)
@@ -216,20 +222,19 @@ class CarRobot(Robot):
         push = -(rot.T @ data.xfrc_applied[1, :2])[1]
         axle = jnp.clip(static[0] + 0.5 * self.load_transfer * push, 0.0, 0.5 * weight)
         normal = jnp.stack([axle, axle, weight - 2 * axle])
-        rel = normal / static  # load relative to the static load
-        grip = self.friction * params.friction_scale * normal
+        rel = params.damping_scale * normal / static  # gains scale with load and damping
+        sliding = jnp.array([self.sliding, self.sliding, self.caster_sliding])
+        limit = sliding * self.friction * params.friction_scale * normal
         c_w = self.wheel_damping * params.damping_scale
         # Positive torque drives toward body -y (the reference's sign convention).
         rim = -self.wheel_radius * torque / c_w
-        f_long = jnp.clip(self.slip_gain * rel[:2] * (rim - v_pts[:2, 1]), -grip[:2], grip[:2])
-        f_lat = -grip[:2] * jnp.tanh(v_pts[:2, 0] / self.slip_speed)
-        # The reference car runs faster backward (0.83 m/s) than forward (0.73): a leading ball
-        # caster drags more than a trailing one.
-        drag_long = jnp.where(v_pts[2, 1] > 0, self.caster_drag_trailing, self.caster_drag)
-        drag = jnp.stack([jnp.asarray(self.caster_drag_side, drag_long.dtype), drag_long])
-        f_caster = -params.damping_scale * rel[2] * drag * v_pts[2]
-        f_caster *= jnp.minimum(1.0, grip[2] / (jnp.linalg.norm(f_caster) + 1e-12))
-        forces = jnp.concatenate([jnp.stack([f_lat, f_long], axis=-1), f_caster[None]])
+        wheel = jnp.stack([-self.side_gain * rel[:2] * v_pts[:2, 0],
+                           self.slip_gain * rel[:2] * (rim - v_pts[:2, 1])], axis=-1)
+        caster = -self.caster_gain * rel[2] * v_pts[2]
+        forces = jnp.concatenate([wheel, caster[None]])
+        # Each contact's force lies in its friction circle.
+        size = jnp.linalg.norm(forces, axis=-1)
+        forces *= jnp.minimum(1.0, limit / jnp.maximum(size, 1e-12))[:, None]
         lever = pts - com[None, :]
         tz = jnp.sum(lever[:, 0] * forces[:, 1] - lever[:, 1] * forces[:, 0])
         tz -= self.yaw_scrub * params.damping_scale * omega
