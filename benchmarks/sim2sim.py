@@ -11,7 +11,11 @@ policy.
 2. Turning (Car only): under open-loop action scripts from rest (constant, and i.i.d. switching
    between straight (1, 1) and spin (1, -1) with probability p of straight, the regime a trained
    Car expert drives in, its torques being saturated), the mean forward speed (-velocimeter y,
-   m/s) and yaw rate (gyro z, rad/s) over steps 100-500, ours against theirs.
+   m/s) and yaw rate (gyro z, rad/s) over steps 100-500, ours against theirs; and (CarGoal)
+   each ground contact's force, normal load and speed under held actions, ours
+   (`CarRobot.contact_forces`) against native MuJoCo's `mj_contactForce`, and the top speed,
+   acceleration and spin rate under each dynamics shift (`SHIFTS`) against native MuJoCo's
+   model scaled the same way.
 3. Transfer: the last snapshot of each task's cost-limit-25 (Circle: 20) expert from the committed
    snapshot files, `policy_episodes` episodes deterministic and stochastic in each simulator:
    return, cost (mean and median: a Circle expert's rare escapes from the circle cost 250-280
@@ -164,6 +168,125 @@ def turning(task: str, episodes: int = 4, steps: int = 500, seed: int = 0) -> li
     return rows
 
 
+# Held actions for the contact table: the calibration points, the turning regime, and drives
+# below the torque limit (the wheels' rolling, unsaturated regime).
+CONTACT_SCRIPTS = [("straight (1, 1)", (1.0, 1.0)), ("backward (-1, -1)", (-1.0, -1.0)),
+                   ("spin (1, -1)", (1.0, -1.0)), ("one wheel (1, 0)", (1.0, 0.0)),
+                   ("(1, 0.01)", (1.0, 0.01)), ("(0.01, 0.01)", (0.01, 0.01)),
+                   ("(0.005, 0.005)", (0.005, 0.005))]
+CONTACTS = ("left wheel", "right wheel", "caster")
+
+
+@functools.cache
+def _contact_program(task: str, steps: int, start: int):
+    """Jitted `(key, action) -> (forces [3, 2], normals [3], velocities [3, 2])`: our contact
+    forces (`CarRobot.contact_forces`) and contact-point velocities, chassis frame, averaged
+    over steps `start`..`steps` of a held action from rest."""
+    import jax
+    import jax.numpy as jnp
+
+    from safecdt_jax import envs
+    from safecdt_jax.envs.robots import rot2
+
+    env, params = envs.make(task)
+    robot = env.robot
+    loads = jnp.asarray(robot._loads(), jnp.float32)
+    pts = jnp.asarray(robot.contacts, jnp.float32)
+
+    def run(key, action):
+        torque = params.gear_scale * robot.executed_action(action)
+
+        def body(state, _):
+            state = env.step(state, action, params)
+            forces, normal = robot.contact_forces(state.data, torque, params, loads)
+            d = state.data
+            v_body = rot2(d.qpos[2]).T @ d.qvel[:2]
+            vel = v_body[None, :] + d.qvel[2] * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
+            return state, (forces, normal, vel)
+
+        _, (f, n, v) = jax.lax.scan(body, env.reset(key, params), None, steps)
+        return f[start:].mean(0), n[start:].mean(0), v[start:].mean(0)
+
+    return jax.jit(run)
+
+
+def contact_table(task: str = "CarGoal1", steps: int = 300, start: int = 150,
+                  seed: int = 0) -> list[dict]:
+    """Per `CONTACT_SCRIPTS` action and contact: mean longitudinal and lateral ground force on
+    the car (N, chassis frame; longitudinal positive forward), normal load (N) and the contact
+    point's forward speed (m/s), ours against native MuJoCo's (`mj_contactForce`)."""
+    import jax
+
+    theirs = native({"cmd": "contacts", "task": task, "steps": steps, "start": start,
+                     "seed": seed, "actions": [list(a) for _, a in CONTACT_SCRIPTS]})
+    program = _contact_program(task, steps, start)
+    rows = []
+    for i, (name, action) in enumerate(CONTACT_SCRIPTS):
+        f, n, v = (np.asarray(x) for x in program(jax.random.PRNGKey(seed), np.asarray(
+            action, np.float32)))
+        for k, contact in enumerate(CONTACTS):
+            rows.append({"script": name, "contact": contact,
+                         "ours_long": float(-f[k, 1]), "theirs_long": float(
+                             -theirs["force"][i, k, 1]),
+                         "ours_lat": float(f[k, 0]), "theirs_lat": float(theirs["force"][i, k, 0]),
+                         "ours_normal": float(n[k]), "theirs_normal": float(
+                             theirs["force"][i, k, 2]),
+                         "ours_speed": float(-v[k, 1]),
+                         "theirs_speed": float(-theirs["velocity"][i, k, 1])})
+    return rows
+
+
+SHIFTS = [{}, {"friction_scale": 0.5}, {"friction_scale": 0.25}, {"gear_scale": 0.8},
+          {"damping_scale": 0.5}, {"mass_scale": 2.0}]
+
+
+@functools.cache
+def _shift_program(task: str):
+    """Jitted `(params, action, key) -> (mean speed over steps 40-100, speed after 10 steps,
+    mean gyro z over steps 40-100)` from rest under a held action."""
+    import jax
+    import jax.numpy as jnp
+
+    from safecdt_jax import envs
+
+    env, _ = envs.make(task)
+
+    def run(params, action, key):
+        def body(s, _):
+            s = env.step(s, action, params)
+            return s, (jnp.linalg.norm(s.data.qvel[:2]), s.obs[8])
+
+        _, (v, g) = jax.lax.scan(body, env.reset(key, params), None, 100)
+        return v[40:].mean(), v[9], g[40:].mean()
+
+    return jax.jit(run)
+
+
+def shift_table(task: str = "CarGoal1", layouts: int = 3) -> list[dict]:
+    """Per `SHIFTS` dynamics shift: top speed (m/s, a = (1, 1)), speed after 0.4 s and spin rate
+    (rad/s, a = (1, -1)), ours against native MuJoCo with the same scales applied to its model."""
+    import jax
+    import jax.numpy as jnp
+
+    from safecdt_jax import envs
+    from safecdt_jax.envs.dynamics import apply_dynamics
+
+    theirs = native({"cmd": "shifts", "task": task, "shifts": SHIFTS, "layouts": layouts})
+    _, params = envs.make(task)
+    program, rows = _shift_program(task), []
+    for i, shift in enumerate(SHIFTS):
+        p = apply_dynamics(params, shift)
+        runs = [[np.asarray(x) for x in program(p, jnp.asarray(a), jax.random.PRNGKey(k))]
+                for k in range(layouts) for a in ((1.0, 1.0), (1.0, -1.0))]
+        straight, spin = np.mean(runs[0::2], axis=0), np.mean(runs[1::2], axis=0)
+        ours, other = (straight[0], straight[1], spin[2]), theirs["values"][i]
+        rows.append({"shift": ",".join(f"{k}={v:g}" for k, v in shift.items()) or "nominal",
+                     "ours_top": float(ours[0]), "ours_early": float(ours[1]),
+                     "ours_yaw": float(ours[2]), "theirs_top": float(other[0]),
+                     "theirs_early": float(other[1]), "theirs_yaw": float(other[2])})
+    return rows
+
+
 def export_policy(snapshot_file: Path, index: int, path: Path) -> dict:
     """Writes snapshot `index` of an expert snapshot file as plain arrays for the native side
     (kernel_i, bias_i, std, mean, var, var_floor, clip); returns its metadata."""
@@ -267,6 +390,22 @@ def report(results: dict) -> str:
             ["script", "speed ours", "speed theirs", "yaw rate ours", "yaw rate theirs"],
             [[r["script"], f"{r['ours_speed']:.3f}", f"{r['theirs_speed']:.3f}",
               f"{r['ours_yaw_rate']:.3f}", f"{r['theirs_yaw_rate']:.3f}"] for r in rows]), ""]
+    for task, rows in results.get("contacts", {}).items():
+        out += [f"### {task}: ground contact forces under held actions (steps 150-300)", "",
+                markdown_table(
+                    ["action", "contact", "forward force ours / theirs (N)",
+                     "lateral ours / theirs", "normal ours / theirs",
+                     "forward speed ours / theirs"],
+                    [[r["script"], r["contact"], f"{r['ours_long']:.3f} / {r['theirs_long']:.3f}",
+                      f"{r['ours_lat']:.3f} / {r['theirs_lat']:.3f}",
+                      f"{r['ours_normal']:.3f} / {r['theirs_normal']:.3f}",
+                      f"{r['ours_speed']:.3f} / {r['theirs_speed']:.3f}"] for r in rows]), ""]
+    for task, rows in results.get("shifts", {}).items():
+        out += [f"### {task}: shifted dynamics from rest", "", markdown_table(
+            ["shift", "top speed ours / theirs (m/s)", "after 0.4 s", "spin rate (rad/s)"],
+            [[r["shift"], f"{r['ours_top']:.3f} / {r['theirs_top']:.3f}",
+              f"{r['ours_early']:.3f} / {r['theirs_early']:.3f}",
+              f"{r['ours_yaw']:.3f} / {r['theirs_yaw']:.3f}"] for r in rows]), ""]
     if results.get("transfer"):
         out += ["### Expert transfer, ours -> Safety-Gymnasium", "", markdown_table(
             ["task", "limit", "episodes", "policy", "return ours", "return theirs", "ratio",
@@ -298,6 +437,8 @@ def main() -> None:
         "sensors": {task: sensor_stats(task, args.episodes) for task in tasks},
         "script": {task: script_readings(task) for task in tasks if task.startswith("Car")},
         "turning": {task: turning(task) for task in tasks if task.startswith("Car")},
+        "contacts": {task: contact_table(task) for task in tasks if task.startswith("CarGoal")},
+        "shifts": {task: shift_table(task) for task in tasks if task.startswith("CarGoal")},
         "transfer": [] if args.no_transfer else
         [r for task in tasks for r in transfer(task, args.policy_episodes)]}
     results["seconds"] = time.perf_counter() - t

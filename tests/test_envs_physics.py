@@ -38,6 +38,36 @@ def test_car_yaw_rate():
     assert float(state.data.qvel[2]) == pytest.approx(1.24, rel=0.15)
 
 
+def _forward_speed(state):
+    yaw = state.data.qpos[2]
+    return -float(-jnp.sin(yaw) * state.data.qvel[0] + jnp.cos(yaw) * state.data.qvel[1])
+
+
+def test_car_turns_on_one_wheel_like_native():
+    """Native MuJoCo (sim2sim's turning table, steps 100-500): one wheel driven, a = (1, 0),
+    goes 0.141 m/s at 0.645 rad/s, 0.18 of its straight speed, because the undriven wheel
+    brakes and the driven one slides at its friction limit; a linear traction gives half."""
+    straight = _forward_speed(hold("CarCircle1", (1.0, 1.0), 8.0))
+    one = hold("CarCircle1", (1.0, 0.0), 8.0)
+    assert 0.12 < _forward_speed(one) / straight < 0.3
+    assert float(one.data.qvel[2]) == pytest.approx(0.645, rel=0.2)
+
+
+def test_contact_forces_brake_an_undriven_wheel_and_stay_in_the_friction_circle():
+    _, params = envs.make("CarCircle1")
+    loads = jnp.asarray(CAR._loads(), jnp.float32)
+    torque = params.gear_scale * CAR.executed_action(jnp.array([1.0, 0.0]))
+    state = hold("CarCircle1", (1.0, 0.0), 4.0)
+    forces, normal = CAR.contact_forces(state.data, torque, params, loads)
+    forces, normal = np.asarray(forces), np.asarray(normal)
+    limit = np.array([CAR.sliding, CAR.sliding, CAR.caster_sliding]) * CAR.friction * normal
+    assert np.all(np.linalg.norm(forces, axis=1) <= limit * (1 + 1e-5))
+    # native (mj_contactForce): driven wheel 0.068 N forward at its limit, undriven -0.015
+    assert forces[0, 1] < 0 and np.linalg.norm(forces[0]) == pytest.approx(limit[0], rel=1e-4)
+    assert forces[1, 1] > 0  # the undriven wheel pushes backward: it brakes
+    assert normal.sum() == pytest.approx(float(CAR._loads().sum()), rel=1e-5)
+
+
 def test_action_saturates_at_force_limit():
     # the force ranges (Car 0.02 N m, Point 0.05 N) set the action scale: beyond them, no change
     a = hold("CarCircle1", (0.5, 0.5), 1.0)

@@ -9,6 +9,17 @@ It imports only the peer's packages, never this project. Requests (JSON):
 - `{"cmd": "policy", "task": ..., "weights": "policy.npz", "episodes": 16, "seed": 0,
   "deterministic": true}`: an exported expert (a tanh MLP on normalised observations, see
   `benchmarks.sim2sim.export_policy`); per-episode return, cost and goals.
+- `{"cmd": "contacts", "task": "CarGoal1", "actions": [[a0, a1], ...], "steps": 300,
+  "start": 150, "seed": 0}`: per constant action (held from rest), the mean over steps
+  `start`..`steps` of each ground contact's force on the car in the chassis frame (left wheel,
+  right wheel, caster: x, y, normal; N, summed over that geom's contacts), its point's velocity
+  (m/s, x, y) and the wheels' rim speeds (hinge rate x radius, m/s).
+- `{"cmd": "shifts", "task": "CarGoal1", "shifts": [{"friction_scale": 0.5}, ...],
+  "layouts": 3}`: per shift (this project's `EnvParams` scales applied to the native model:
+  every geom's sliding friction, the actuators' gear, the robot's joint dampings, its bodies'
+  masses and inertias), from rest: the mean speed over steps 40-100 at a = (1, 1), the speed
+  after 10 steps, and the mean gyro z over steps 40-100 at a = (1, -1), averaged over
+  `layouts` resets; [n_shifts, 3].
 The observation is Safety-Gymnasium's flattened one, checked against the key order that this
 project's envs use (sensors, caster angular velocity, caster orientation, then lidars).
 """
@@ -89,11 +100,93 @@ def policy(task: str, weights: str, episodes: int, seed: int, deterministic: boo
     return {"return": np.asarray(rets), "cost": np.asarray(costs), "goals": np.asarray(goals)}
 
 
+def contacts(task: str, actions: list, steps: int, start: int, seed: int) -> dict:
+    """Mean contact forces, contact-point velocities and rim speeds per held action (Car)."""
+    import mujoco
+
+    env = make(task)
+    forces, speeds, rims = [], [], []
+    for action in actions:
+        env.reset(seed=seed)
+        m, d = env.unwrapped.task.model, env.unwrapped.task.data  # rebuilt by reset
+        geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
+                 for n in ("left", "right", "rear")]
+        agent = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "agent")
+        hinges = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]
+                  for n in ("left", "right")]
+        f_sum, v_sum, rim_sum, f6, v6 = np.zeros((3, 3)), np.zeros((3, 2)), np.zeros(2), \
+            np.zeros(6), np.zeros(6)
+        for t in range(steps):
+            env.step(np.asarray(action, float))
+            if t < start:
+                continue
+            rot = d.xmat[agent].reshape(3, 3)
+            for i in range(d.ncon):
+                c = d.contact[i]
+                for k, g in enumerate(geoms):
+                    if g in (c.geom1, c.geom2):
+                        mujoco.mj_contactForce(m, d, i, f6)
+                        world = c.frame.reshape(3, 3).T @ f6[:3]  # on geom2, from geom1
+                        f_sum[k] += rot.T @ (world if c.geom2 == g else -world)
+            for k, g in enumerate(geoms):
+                mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_GEOM, g, v6, 0)
+                v_sum[k] += (rot.T @ v6[3:])[:2]
+            rim_sum += d.qvel[hinges] * 0.05
+        n = steps - start
+        forces.append(f_sum / n)
+        speeds.append(v_sum / n)
+        rims.append(rim_sum / n)
+    return {"force": np.asarray(forces), "velocity": np.asarray(speeds), "rim": np.asarray(rims)}
+
+
+def _apply_shift(m, shift: dict) -> None:
+    """Scales the native model in place as this project's `EnvParams` scales do."""
+    import mujoco
+
+    agent = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "agent")
+    robot = [b for b in range(m.nbody) if b == agent or m.body_parentid[b] == agent]
+    m.geom_friction[:, 0] *= shift.get("friction_scale", 1.0)
+    m.actuator_gear[:, 0] *= shift.get("gear_scale", 1.0)
+    for b in robot:
+        m.body_mass[b] *= shift.get("mass_scale", 1.0)
+        m.body_inertia[b] *= shift.get("mass_scale", 1.0)
+        if b != agent:  # the free joint has no damping; wheels' hinges and the caster's ball
+            dofs = slice(m.body_dofadr[b], m.body_dofadr[b] + m.body_dofnum[b])
+            m.dof_damping[dofs] *= shift.get("damping_scale", 1.0)
+
+
+def shifts(task: str, shifts: list, layouts: int) -> dict:
+    """Top speed, speed after 0.4 s (m/s) and spin rate (rad/s) per dynamics shift (Car)."""
+    import mujoco
+
+    env = make(task)
+    out = []
+    for shift in shifts:
+        runs = []
+        for seed in range(layouts):
+            row = []
+            for action in ((1.0, 1.0), (1.0, -1.0)):
+                env.reset(seed=seed)
+                m, d = env.unwrapped.task.model, env.unwrapped.task.data
+                _apply_shift(m, shift)
+                gyro = m.sensor_adr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_SENSOR, "gyro")]
+                speeds, yaws = [], []
+                for _ in range(100):
+                    env.step(np.asarray(action))
+                    speeds.append(np.linalg.norm(d.qvel[:2]))
+                    yaws.append(d.sensordata[gyro + 2])
+                row.append((np.mean(speeds[40:]), speeds[9], np.mean(yaws[40:])))
+            runs.append((row[0][0], row[0][1], row[1][2]))
+        out.append(np.mean(runs, axis=0))
+    return {"values": np.asarray(out)}
+
+
 def main() -> None:
     """Reads the request, writes the arrays."""
     request = json.loads(open(sys.argv[1]).read())
     cmd = request.pop("cmd")
-    result = {"trace": trace, "policy": policy}[cmd](**request)
+    result = {"trace": trace, "policy": policy, "contacts": contacts,
+              "shifts": shifts}[cmd](**request)
     np.savez(sys.argv[2], **result)
 
 

@@ -151,10 +151,10 @@ class PointRobot(Robot):
 class CarRobot(Robot):
     """The Car: a planar chassis driven by wheel traction computed in JAX every substep.
 
-    Every contact force below is the quasi-static balance of a MuJoCo soft contact whose slip
-    force grows linearly with the slip speed and saturates at `sliding` x mu N (the solver's
-    regularisation leaves native MuJoCo's sliding force at 0.76-0.83 of the cone's mu N),
-    measured contact by contact in native MuJoCo (`mj_contactForce`, docs/ENVIRONMENTS.md):
+    Each ground contact's force grows linearly with its slip and saturates at a fraction of
+    mu N (native MuJoCo's soft contacts slide at 0.66-0.88 of the cone's mu N), the model that
+    the reference's contact forces, measured contact by contact (`mj_contactForce`,
+    `benchmarks.sim2sim`'s contact table, docs/ENVIRONMENTS.md), support:
     - A driven wheel (contact at body (+-0.13, 0.1)) under torque tau would spin freely at the
       rim speed r tau / c_w (its hinge damping c_w balances the torque within milliseconds, the
       wheel's inertia being tiny); its contact pushes the chassis with
@@ -164,15 +164,16 @@ class CarRobot(Robot):
       brakes, and a driven wheel whose slip is large (turning on one wheel, spinning) pushes
       with its friction limit, not with its torque: what makes native MuJoCo's car turn on one
       wheel at 0.18 of its straight speed.
-    - The passive ball caster (contact at body (0, -0.1)) rolls at `caster_roll` of the no-slip
-      rate while its drag, `caster_roll` c_b / r^2 (N_c / N_c0) v, is under its friction
-      limit, and slides at the limit beyond (about 0.3 m/s): a Coulomb drag at driving speeds.
+    - The passive ball caster (contact at body (0, -0.1)) rolls while its drag,
+      `caster_gain` (N_c / N_c0) v, is under `caster_sliding` mu N_c, and slides at that limit
+      beyond (about 0.3 m/s): a Coulomb drag at driving speeds (native: 0.36 N s/m rolling,
+      0.11-0.12 N sliding).
     Normal loads: the statics of the centre of mass (N_0, N_c0) plus a load transfer: the net
     ground force F of the previous substep, acting at the floor below the centre of mass, moves
     F h / L of load between the caster and the drive axle.
-    The constants are the native contact measurements (straight and spin speeds, one-wheel and
-    mixed-drive turning, the caster's spin) and the per-step response of native MuJoCo under
-    uniform random actions; see docs/ENVIRONMENTS.md.
+    The gains and limits start from the native contact measurements and were then fitted to
+    the reference's straight and spin speeds, its turning under one-wheel, mixed and switching
+    drive (`sim2sim`'s turning table) and its drift under uniform random actions.
     """
 
     wheel_radius: float = 0.05  # m
@@ -203,19 +204,18 @@ class CarRobot(Robot):
         weight = float(mj.body_mass[1]) * GRAVITY
         return np.array([share / 2, share / 2, 1 - share]) * weight
 
-    def traction(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
-                 loads: jax.Array, com: jax.Array) -> jax.Array:
-        """World-frame force and torque [6] on the chassis COM from wheel and caster contacts.
+    def contact_forces(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
+                       loads: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Body-frame ground forces (N) [3, 2] (x lateral, y longitudinal; positive y toward
+        the rear) on left wheel, right wheel and caster, and their normal loads (N) [3].
 
         `data.xfrc_applied` holds the previous substep's force (zero at reset): its body-frame
         longitudinal part sets the load transfer.
         """
-        yaw = data.qpos[2]
-        rot = rot2(yaw)
+        rot = rot2(data.qpos[2])
         v_body = rot.T @ data.qvel[:2]
-        omega = data.qvel[2]
         pts = jnp.array(self.contacts)
-        v_pts = v_body[None, :] + omega * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
+        v_pts = v_body[None, :] + data.qvel[2] * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
         # Load transfer: a forward push (body -y) loads the drive axle and unloads the caster.
         static = loads * params.mass_scale
         weight = jnp.sum(static)
@@ -235,10 +235,19 @@ class CarRobot(Robot):
         # Each contact's force lies in its friction circle.
         size = jnp.linalg.norm(forces, axis=-1)
         forces *= jnp.minimum(1.0, limit / jnp.maximum(size, 1e-12))[:, None]
-        lever = pts - com[None, :]
+        return forces, normal
+
+    def traction(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
+                 loads: jax.Array, com: jax.Array) -> jax.Array:
+        """World-frame force and torque [6] on the chassis COM from the `contact_forces` and
+        the yaw scrub."""
+        forces, _ = self.contact_forces(data, torque, params, loads)
+        lever = jnp.array(self.contacts) - com[None, :]
         tz = jnp.sum(lever[:, 0] * forces[:, 1] - lever[:, 1] * forces[:, 0])
-        tz -= self.yaw_scrub * params.damping_scale * omega
-        fw = rot @ forces.sum(axis=0)
+        # Scrub is contact friction: it scales with mu (as the reference's torsional friction).
+        scrub = self.yaw_scrub * params.friction_scale * params.damping_scale
+        tz -= scrub * data.qvel[2]
+        fw = rot2(data.qpos[2]) @ forces.sum(axis=0)
         return jnp.array([fw[0], fw[1], 0.0, 0.0, 0.0, tz])
 
     def executed_action(self, action: jax.Array) -> jax.Array:
