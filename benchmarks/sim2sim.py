@@ -373,8 +373,11 @@ def transfer(task: str, episodes: int) -> list[dict]:
 
 
 def report(results: dict) -> str:
-    """Markdown: one sensor table per task, then the transfer table."""
-    out = []
+    """Markdown: the runs that made it, one sensor table per task, the Car's turning, contact
+    and shift tables, then the transfer table."""
+    out = [f"- `{r['command']}` ({', '.join(r['tasks'])}; {r['date']})"
+           for r in results.get("runs", [])]
+    out += [""] if out else []
     for task, rows in results["sensors"].items():
         out += [f"### {task}: sensors under uniform random actions", "", markdown_table(
             ["dim", "name", "ours mean", "ours std", "theirs mean", "theirs std", "std ratio",
@@ -421,6 +424,29 @@ def report(results: dict) -> str:
     return "\n".join(out)
 
 
+def merge_previous(results: dict, path: Path, tasks: list[str]) -> dict:
+    """`results` with the other tasks' entries of an earlier file at `path` kept (a run over
+    some tasks updates their rows only); `runs` lists every contributing command and date."""
+    if not path.exists():
+        return {**results, "runs": [{"command": results["command"], "tasks": tasks,
+                                     "date": results["machine"]["date"]}]}
+    old = json.loads(path.read_text())
+    merged = dict(results)
+    for part in ("sensors", "script", "turning", "contacts", "shifts"):
+        merged[part] = {**{k: v for k, v in old.get(part, {}).items() if k not in tasks},
+                        **results[part]}
+    if results["transfer"]:
+        merged["transfer"] = [r for r in old.get("transfer", []) if r["task"] not in tasks]
+        merged["transfer"] += results["transfer"]
+    else:
+        merged["transfer"] = old.get("transfer", [])
+    first = {"command": old.get("command"), "tasks": list(old.get("sensors", {})),
+             "date": old.get("machine", {}).get("date")}
+    this = {"command": results["command"], "tasks": tasks, "date": results["machine"]["date"]}
+    merged["runs"] = [*old.get("runs", [first]), this]
+    return merged
+
+
 def main() -> None:
     """Command line: measure, print the tables, write JSON and markdown."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -442,6 +468,7 @@ def main() -> None:
         "transfer": [] if args.no_transfer else
         [r for task in tasks for r in transfer(task, args.policy_episodes)]}
     results["seconds"] = time.perf_counter() - t
+    results = merge_previous(results, args.out, tasks)
     text = report(results)
     print(text)
     write_json(args.out, results)
