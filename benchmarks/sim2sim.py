@@ -186,12 +186,9 @@ def _contact_program(task: str, steps: int, start: int):
     import jax.numpy as jnp
 
     from safecdt_jax import envs
-    from safecdt_jax.envs.robots import rot2
-
     env, params = envs.make(task)
     robot = env.robot
     loads = jnp.asarray(robot._loads(), jnp.float32)
-    pts = jnp.asarray(robot.contacts, jnp.float32)
 
     def run(key, action):
         torque = params.gear_scale * robot.executed_action(action)
@@ -199,10 +196,7 @@ def _contact_program(task: str, steps: int, start: int):
         def body(state, _):
             state = env.step(state, action, params)
             forces, normal = robot.contact_forces(state.data, torque, params, loads)
-            d = state.data
-            v_body = rot2(d.qpos[2]).T @ d.qvel[:2]
-            vel = v_body[None, :] + d.qvel[2] * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
-            return state, (forces, normal, vel)
+            return state, (forces, normal, robot.contact_velocities(state.data))
 
         _, (f, n, v) = jax.lax.scan(body, env.reset(key, params), None, steps)
         return f[start:].mean(0), n[start:].mean(0), v[start:].mean(0)

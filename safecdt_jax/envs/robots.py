@@ -204,6 +204,13 @@ class CarRobot(Robot):
         weight = float(mj.body_mass[1]) * GRAVITY
         return np.array([share / 2, share / 2, 1 - share]) * weight
 
+    def contact_velocities(self, data: mjx.Data) -> jax.Array:
+        """Chassis-frame velocities (m/s) [3, 2] of the left wheel's, right wheel's and
+        caster's contact points (x lateral, y longitudinal, positive toward the rear)."""
+        v_body = rot2(data.qpos[2]).T @ data.qvel[:2]
+        pts = jnp.array(self.contacts)
+        return v_body[None, :] + data.qvel[2] * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
+
     def contact_forces(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
                        loads: jax.Array) -> tuple[jax.Array, jax.Array]:
         """Body-frame ground forces (N) [3, 2] (x lateral, y longitudinal; positive y toward
@@ -213,9 +220,7 @@ class CarRobot(Robot):
         longitudinal part sets the load transfer.
         """
         rot = rot2(data.qpos[2])
-        v_body = rot.T @ data.qvel[:2]
-        pts = jnp.array(self.contacts)
-        v_pts = v_body[None, :] + data.qvel[2] * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
+        v_pts = self.contact_velocities(data)
         # Load transfer: a forward push (body -y) loads the drive axle and unloads the caster.
         static = loads * params.mass_scale
         weight = jnp.sum(static)
