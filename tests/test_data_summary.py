@@ -1,10 +1,13 @@
 """Data set summary figures on episodes with known returns and costs, and the scatter PNG."""
 
 import json
+import os
+import stat
 
 import numpy as np
 
 from safecdt_jax.data import make_dataset, summarize_dataset, write_dataset
+from safecdt_jax.data.dataset import write_text_atomic
 
 COSTS = [0.0, 10.0, 25.0, 31.0, 100.0, 150.0]
 RETURNS = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
@@ -55,3 +58,14 @@ def test_summary_from_file_writes_png_atomically(tmp_path):
     assert s == summarize_dataset(known_dataset())
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and png.stat().st_size > 1000
     assert sorted(p.name for p in png.parent.iterdir()) == ["scatter.png"]
+
+
+def test_atomic_writes_get_the_umask_permissions_not_mkstemps_private_ones(tmp_path):
+    old = os.umask(0o027)
+    try:
+        path = write_text_atomic(tmp_path / "r.json", "{}")
+    finally:
+        os.umask(old)
+    assert path.read_text() == "{}"
+    assert stat.S_IMODE(path.stat().st_mode) == 0o640
+    assert [p.name for p in tmp_path.iterdir()] == ["r.json"]

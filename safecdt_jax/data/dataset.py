@@ -254,11 +254,20 @@ def to_flat(data: Dataset) -> dict[str, np.ndarray]:
     return out
 
 
+def _umask() -> int:
+    """The process's file-creation mask (reading it means setting it; restored at once)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 @contextmanager
 def atomic_path(path: str | os.PathLike, suffix: str = ""):
     """Yield a temporary path in `path`'s folder; on success move it onto `path` (os.replace).
 
-    Readers never see a half-written file; on error the temporary file is removed.
+    Readers never see a half-written file; on error the temporary file is removed. The file
+    gets the permissions a plain `open` would give it (0o666 less the umask), not mkstemp's
+    private 0o600, so results stay readable by the other users of a shared machine.
     """
     path = os.fspath(path)
     folder = os.path.dirname(os.path.abspath(path))
@@ -267,6 +276,7 @@ def atomic_path(path: str | os.PathLike, suffix: str = ""):
     os.close(fd)
     try:
         yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
