@@ -1,13 +1,16 @@
 """Data set summary figures on episodes with known returns and costs, and the scatter PNG."""
 
+import dataclasses
 import json
 import os
 import stat
 
 import numpy as np
+import pytest
 
 from safecdt_jax.data import make_dataset, summarize_dataset, write_dataset
 from safecdt_jax.data.dataset import write_text_atomic
+from safecdt_jax.data.summary import between_group_share
 
 COSTS = [0.0, 10.0, 25.0, 31.0, 100.0, 150.0]
 RETURNS = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]
@@ -69,3 +72,17 @@ def test_atomic_writes_get_the_umask_permissions_not_mkstemps_private_ones(tmp_p
     assert path.read_text() == "{}"
     assert stat.S_IMODE(path.stat().st_mode) == 0o640
     assert [p.name for p in tmp_path.iterdir()] == ["r.json"]
+
+
+def test_variance_share_between_snapshots_known_values():
+    # Groups {0, 0, 1, 1}: means 1 and 5 around 3, so between = 4 * 4 = 16 of total 16 + 4.
+    assert between_group_share(np.array([0.0, 2.0, 4.0, 6.0]), np.array([0, 0, 1, 1])) == 0.8
+    assert between_group_share(np.array([1.0, 1.0]), np.array([0, 1])) is None
+    assert between_group_share(np.array([1.0, 2.0]), None) is None
+    s = summarize_dataset(known_dataset())
+    assert s["cost_share_by_snapshot"] is None  # no snapshot ids: not expert data
+    data = dataclasses.replace(known_dataset(), episode_info={"snapshot": np.arange(6) % 2})
+    # costs 0, 25, 100 | 10, 31, 150: means 41.67 and 63.67 around 52.67
+    costs = np.array(COSTS)
+    want = 6 * 11.0**2 / np.sum((costs - costs.mean()) ** 2)
+    assert summarize_dataset(data)["cost_share_by_snapshot"] == pytest.approx(want)

@@ -115,6 +115,10 @@ def data_summary(
     fmt = lambda x: "none" if x is None else f"{x:.2f}"
     typer.echo(f"  best return at cost <= 10: {fmt(safe)} ({s['n_cost_le_10']} episodes); at "
                f"cost 30-100: {fmt(risky)} ({s['n_cost_30_100']} episodes){gain}")
+    if s["cost_share_by_snapshot"] is not None:
+        typer.echo(f"  variance between expert snapshots: cost {s['cost_share_by_snapshot']:.2f}"
+                   f", return {s['return_share_by_snapshot']:.2f} (the rest: layout and "
+                   f"sampling)")
     labels = {"episodes": ">= 1000 episodes", "cost_span": "costs 0 to >= 100",
               "cost_split": ">= 20% at cost <= 30 and > 30",
               "frontier": "best return at cost 30-100 >= 1.1x best at cost <= 10"}

@@ -36,6 +36,10 @@ def summarize_dataset(
     best_return_cost_le_10 (best return among cost <= `safe_cost`) and best_return_cost_30_100
     (among `budget` < cost <= `high_cost`), None when no episode qualifies; n_cost_le_10 and
     n_cost_30_100 (how many qualify). Key names follow the thresholds (30.5 -> "30p5").
+    cost_share_by_snapshot and return_share_by_snapshot: for expert data (episode_info
+    "snapshot"), the fraction of the episodes' cost (return) variance that lies between the
+    snapshots' means (1: the policy decides the cost; near 0: the layout and the sampling do);
+    None without snapshot ids or with a constant quantity.
     With `png_path`, writes a reward-cost scatter PNG there atomically (matplotlib Agg).
     JSON-serialisable: plain Python numbers and None.
     """
@@ -68,9 +72,27 @@ def summarize_dataset(
         f"n_cost_le_{s}": int(safe.sum()),
         f"n_cost_{b}_{h}": int(mid.sum()),
     }
+    groups = data.episode_info.get("snapshot")
+    out["cost_share_by_snapshot"] = between_group_share(costs, groups)
+    out["return_share_by_snapshot"] = between_group_share(returns, groups)
     if png_path is not None:
         _scatter(png_path, costs, returns, budget, str(data.attrs.get("task", "")))
     return out
+
+
+def between_group_share(values: np.ndarray, groups: np.ndarray | None) -> float | None:
+    """Fraction of the (population) variance of `values` that lies between the group means:
+    sum_g n_g (mean_g - mean)^2 / sum_i (v_i - mean)^2, in [0, 1]. None when `groups` is None
+    or the values are constant."""
+    if groups is None:
+        return None
+    values = np.asarray(values, np.float64)
+    total = np.sum((values - values.mean()) ** 2)
+    if total == 0:
+        return None
+    _, idx, counts = np.unique(np.asarray(groups), return_inverse=True, return_counts=True)
+    means = np.bincount(idx, weights=values) / counts
+    return float(np.sum(counts * (means - values.mean()) ** 2) / total)
 
 
 def _scatter(png_path, costs, returns, budget: float, title: str) -> None:
