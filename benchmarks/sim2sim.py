@@ -2,7 +2,8 @@
 policy.
 
     python -m benchmarks.sim2sim [--tasks CarGoal1,PointGoal1,CarCircle1,PointCircle1]
-        [--episodes 4] [--policy-episodes 64] [--out benchmarks/results/sim2sim.json]
+        [--episodes 4] [--policy-episodes 64] [--parts sensors,...,transfer]
+        [--out benchmarks/results/sim2sim.json]
 
 1. Sensors: per observation dimension of the robot's sensors, the mean and std of ours and of
    Safety-Gymnasium's under uniform random actions (`episodes` x 500 steps each side), their std
@@ -20,7 +21,9 @@ policy.
    snapshot files, `policy_episodes` episodes deterministic and stochastic in each simulator:
    return, cost (mean and median: a Circle expert's rare escapes from the circle cost 250-280
    each, so the mean of 32 episodes swings with one or two of them) and goals, and the ratio
-   theirs / ours.
+   theirs / ours with a 95% bootstrap interval (the two samples resampled independently). The
+   Point robot, whose sensors agree with Safety-Gymnasium's to three decimals, is the control:
+   its intervals show how far the ratios move when the physics is the same.
 Needs the peer venv (`python -m benchmarks.peers.setup`); writes a JSON and a markdown table.
 """
 
@@ -48,6 +51,7 @@ SENSOR_NAMES = {
     + [f"ballquat_{i}{j}" for i in range(3) for j in range(3)],
 }
 LIMIT = {"Goal": 25.0, "Circle": 20.0}
+PARTS = ("sensors", "script", "turning", "contacts", "shifts", "transfer")
 
 
 def native(request: dict) -> dict[str, np.ndarray]:
@@ -341,6 +345,23 @@ def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed:
     return {k: np.asarray(out[k]) for k in ("return", "cost", "goals")}
 
 
+def ratio_interval(theirs: np.ndarray, ours: np.ndarray, level: float = 0.95,
+                   resamples: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """Percentile bootstrap interval of mean(theirs) / mean(ours) (unitless), each sample
+    resampled with replacement on its own (the two simulators' episodes are independent).
+    A resampled denominator of 0 gives an infinite ratio, so an interval can end at inf."""
+    theirs, ours = np.asarray(theirs, np.float64), np.asarray(ours, np.float64)
+    if theirs.size == 0 or ours.size == 0:
+        raise ValueError("ratio_interval needs at least one episode on each side")
+    rng = np.random.default_rng(seed)
+    num = theirs[rng.integers(0, theirs.size, (resamples, theirs.size))].mean(1)
+    den = ours[rng.integers(0, ours.size, (resamples, ours.size))].mean(1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(den > 0, num / np.where(den > 0, den, 1.0), np.inf)
+    lo, hi = np.quantile(ratio, [(1 - level) / 2, (1 + level) / 2], method="inverted_cdf")
+    return float(lo), float(hi)
+
+
 def transfer(task: str, episodes: int) -> list[dict]:
     """The task's limit-25 (Circle: 20) expert in both simulators, deterministic and stochastic."""
     from safecdt_jax.experts.collect import snapshot_path
@@ -362,8 +383,17 @@ def transfer(task: str, episodes: int) -> list[dict]:
             row["theirs_median_cost"] = float(np.median(t["cost"]))
             row["return_ratio"] = row["theirs_return"] / row["ours_return"]
             row["cost_ratio"] = row["theirs_cost"] / max(row["ours_cost"], 1e-9)
+            row["return_ratio_ci"] = ratio_interval(t["return"], o["return"])
+            row["cost_ratio_ci"] = ratio_interval(t["cost"], o["cost"])
+            for k in ("return", "cost"):  # kept so that the intervals can be recomputed
+                row[f"ours_{k}s"] = [round(float(x), 4) for x in o[k]]
+                row[f"theirs_{k}s"] = [round(float(x), 4) for x in t[k]]
             rows.append(row)
     return rows
+
+
+def _with_ci(ratio: float, ci) -> str:
+    return f"{ratio:.2f}" + (f" ({ci[0]:.2f}-{ci[1]:.2f})" if ci else "")
 
 
 def report(results: dict) -> str:
@@ -372,7 +402,7 @@ def report(results: dict) -> str:
     out = [f"- `{r['command']}` ({', '.join(r['tasks'])}; {r['date']})"
            for r in results.get("runs", [])]
     out += [""] if out else []
-    for task, rows in results["sensors"].items():
+    for task, rows in results.get("sensors", {}).items():
         out += [f"### {task}: sensors under uniform random actions", "", markdown_table(
             ["dim", "name", "ours mean", "ours std", "theirs mean", "theirs std", "std ratio",
              "W1"],
@@ -405,12 +435,14 @@ def report(results: dict) -> str:
               f"{r['ours_yaw']:.3f} / {r['theirs_yaw']:.3f}"] for r in rows]), ""]
     if results.get("transfer"):
         out += ["### Expert transfer, ours -> Safety-Gymnasium", "", markdown_table(
-            ["task", "limit", "episodes", "policy", "return ours", "return theirs", "ratio",
-             "cost ours", "cost theirs", "median cost ours", "median cost theirs",
-             "goals ours", "goals theirs"],
+            ["task", "limit", "episodes", "policy", "return ours", "return theirs",
+             "ratio (95% CI)", "cost ours", "cost theirs", "cost ratio (95% CI)",
+             "median cost ours", "median cost theirs", "goals ours", "goals theirs"],
             [[r["task"], f"{r['limit']:g}", r["episodes"], "deterministic" if r["deterministic"]
               else "stochastic", f"{r['ours_return']:.1f}", f"{r['theirs_return']:.1f}",
-              f"{r['return_ratio']:.2f}", f"{r['ours_cost']:.1f}", f"{r['theirs_cost']:.1f}",
+              _with_ci(r["return_ratio"], r.get("return_ratio_ci")),
+              f"{r['ours_cost']:.1f}", f"{r['theirs_cost']:.1f}",
+              _with_ci(r["theirs_cost"] / max(r["ours_cost"], 1e-9), r.get("cost_ratio_ci")),
               f"{r.get('ours_median_cost', float('nan')):.1f}",
               f"{r.get('theirs_median_cost', float('nan')):.1f}",
               f"{r['ours_goals']:.1f}", f"{r['theirs_goals']:.1f}"]
@@ -426,10 +458,13 @@ def merge_previous(results: dict, path: Path, tasks: list[str]) -> dict:
                                      "date": results["machine"]["date"]}]}
     old = json.loads(path.read_text())
     merged = dict(results)
-    for part in ("sensors", "script", "turning", "contacts", "shifts"):
+    for part in PARTS[:-1]:
+        if part not in results:  # not measured this time: the earlier rows stand
+            merged[part] = old.get(part, {})
+            continue
         merged[part] = {**{k: v for k, v in old.get(part, {}).items() if k not in tasks},
                         **results[part]}
-    if results["transfer"]:
+    if results.get("transfer"):
         merged["transfer"] = [r for r in old.get("transfer", []) if r["task"] not in tasks]
         merged["transfer"] += results["transfer"]
     else:
@@ -447,20 +482,27 @@ def main() -> None:
     ap.add_argument("--tasks", default="CarGoal1,PointGoal1,CarCircle1,PointCircle1")
     ap.add_argument("--episodes", type=int, default=4)
     ap.add_argument("--policy-episodes", type=int, default=64)
-    ap.add_argument("--no-transfer", action="store_true")
+    ap.add_argument("--parts", default=",".join(PARTS),
+                    help=f"comma-separated subset of {','.join(PARTS)}")
     ap.add_argument("--out", type=Path, default=ROOT / "benchmarks/results/sim2sim.json")
     args = ap.parse_args()
     t = time.perf_counter()
-    tasks = args.tasks.split(",")
+    tasks, parts = args.tasks.split(","), args.parts.split(",")
+    unknown = sorted(set(parts) - set(PARTS))
+    if unknown:
+        raise SystemExit(f"unknown --parts {unknown}; choose from {','.join(PARTS)}")
+    measure = {
+        "sensors": lambda: {task: sensor_stats(task, args.episodes) for task in tasks},
+        "script": lambda: {task: script_readings(task) for task in tasks if task[:3] == "Car"},
+        "turning": lambda: {task: turning(task) for task in tasks if task[:3] == "Car"},
+        "contacts": lambda: {task: contact_table(task) for task in tasks
+                             if task.startswith("CarGoal")},
+        "shifts": lambda: {task: shift_table(task) for task in tasks
+                           if task.startswith("CarGoal")},
+        "transfer": lambda: [r for task in tasks for r in transfer(task, args.policy_episodes)]}
     results = {"machine": machine(), "command": "python -m benchmarks.sim2sim " + " ".join(
-        f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out"),
-        "sensors": {task: sensor_stats(task, args.episodes) for task in tasks},
-        "script": {task: script_readings(task) for task in tasks if task.startswith("Car")},
-        "turning": {task: turning(task) for task in tasks if task.startswith("Car")},
-        "contacts": {task: contact_table(task) for task in tasks if task.startswith("CarGoal")},
-        "shifts": {task: shift_table(task) for task in tasks if task.startswith("CarGoal")},
-        "transfer": [] if args.no_transfer else
-        [r for task in tasks for r in transfer(task, args.policy_episodes)]}
+        f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out")}
+    results.update({part: measure[part]() for part in PARTS if part in parts})
     results["seconds"] = time.perf_counter() - t
     results = merge_previous(results, args.out, tasks)
     text = report(results)
