@@ -193,6 +193,10 @@ class CarRobot(Robot):
     # actions; accelerometer x/y: the part beyond the planar body's own acceleration).
     chatter_std: tuple[float, ...] = (2.3, 3.6, 4.9, 0.0, 0.0, 0.048, 0.45, 0.65, 0.0, 0.0, 0.0,
                                       0.006) + (0.0,) * 12
+    # m: height of the velocimeter site above the axis the native chassis rolls about; its roll
+    # (gyro y) moves the site sideways at roll_height * gyro_y (native velocimeter x std 0.039
+    # m/s under random actions against 0.009 from side slip alone).
+    roll_height: float = 0.06
     contacts: tuple[tuple[float, float], ...] = ((-0.13, 0.1), (0.13, 0.1), (0.0, -0.1))
 
     def _loads(self) -> np.ndarray:
@@ -288,9 +292,7 @@ class CarRobot(Robot):
         chassis: the joint damping drags it round with the chassis, the contact's torsional
         friction is far weaker.
         """
-        v_body = rot2(data.qpos[2]).T @ data.qvel[:2]
-        p = jnp.array(self.contacts[2])
-        v = v_body + data.qvel[2] * jnp.array([-p[1], p[0]])
+        v = self.contact_velocities(data)[2]
         spin = self.caster_roll * jnp.array([-v[1], v[0]]) / self.wheel_radius
         norm = jnp.linalg.norm(spin)
         spin *= jnp.minimum(1.0, self.caster_spin_cap / jnp.maximum(norm, 1e-12))
@@ -310,9 +312,12 @@ class CarRobot(Robot):
         and actions) and a negative lag-1 autocorrelation; its std grows with the mean |torque|
         (4.8 / 2.9 / 1.2 m/s^2 at random torques of full / half / quarter range). A planar
         body cannot rattle, so the sensors get that noise instead (docs/ENVIRONMENTS.md).
+        The velocimeter's x (lateral) reading gets the roll's share, `roll_height` times the
+        gyro y chatter, as a site above the roll axis would (physics version 5).
         """
         std = jnp.asarray(self.chatter_std, jnp.float32) * state["drive"]
-        return std * jax.random.normal(key, std.shape)
+        noise = std * jax.random.normal(key, std.shape)
+        return noise.at[3].add(self.roll_height * noise[7])
 
     def sensors(self, data: mjx.Data, state: dict, key: jax.Array) -> jax.Array:
         """The 24 Car sensors: the 12 planar ones, ballangvel_rear (3), ballquat_rear as 3x3 (9),
