@@ -442,7 +442,7 @@ def report(results: dict) -> str:
               else "stochastic", f"{r['ours_return']:.1f}", f"{r['theirs_return']:.1f}",
               _with_ci(r["return_ratio"], r.get("return_ratio_ci")),
               f"{r['ours_cost']:.1f}", f"{r['theirs_cost']:.1f}",
-              _with_ci(r["theirs_cost"] / max(r["ours_cost"], 1e-9), r.get("cost_ratio_ci")),
+              _with_ci(r["cost_ratio"], r.get("cost_ratio_ci")),
               f"{r.get('ours_median_cost', float('nan')):.1f}",
               f"{r.get('theirs_median_cost', float('nan')):.1f}",
               f"{r['ours_goals']:.1f}", f"{r['theirs_goals']:.1f}"]

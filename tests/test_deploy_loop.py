@@ -108,13 +108,12 @@ def test_sweep_without_lora_variants_skips_the_steps_with_the_same_bits(swept):
     # Other test files in this process may have compiled these programs for other shapes, so
     # count what this sweep adds: one no-LoRA compile at most, and no call of the LoRA program.
     no_lora = _compiled(env, model_cfg, TINY_DEPLOY, False, False)[1]
-    with_lora = _compiled(env, model_cfg, TINY_DEPLOY, False, True)[1]
-    before = no_lora._cache_size(), with_lora._cache_size()
+    init_all, run_all = _compiled(env, model_cfg, TINY_DEPLOY, False, True)  # with LoRA steps
+    before = no_lora._cache_size(), run_all._cache_size()
     fast = jax.device_get(sweep(keys, base, params, specs, env=env, model_cfg=model_cfg,
                                 cfg=TINY_DEPLOY))
     assert no_lora._cache_size() >= 1 and no_lora._cache_size() - before[0] <= 1
-    assert with_lora._cache_size() == before[1]
-    init_all, run_all = _compiled(env, model_cfg, TINY_DEPLOY, False, True)  # with LoRA steps
+    assert run_all._cache_size() == before[1]
     carry = init_all(keys, init_adapters(keys, base, model_cfg), specs)
     _, full = jax.device_get(run_all(carry, np.arange(TINY_DEPLOY.episodes, dtype=np.int32),
                                      base, params, specs))
