@@ -12,6 +12,7 @@ from safecdt_jax.data import (
     grid_filter,
     make_dataset,
     pareto_front,
+    policy_mean_labels,
     relabel_pareto,
     returns_to_go,
     sample_windows,
@@ -145,3 +146,29 @@ def test_degree_choice_still_gives_valid_copies(deg):
     copies = np.arange(100, out.n_episodes)
     assert copies.size == 8 and np.all(np.isfinite(out.return_offset))
     assert np.all(out.cost_offset[copies] >= 0)
+
+
+def test_policy_mean_labels_shift_each_episode_to_its_policy_mean():
+    # Three episodes of policy 7 cost 1, 2 and 6 (mean 3) and return 2, 4, 6 (mean 4); one of
+    # policy 9 keeps its own labels.
+    costs = np.zeros((4, T), np.float32)
+    for i, c in enumerate((1, 2, 6, 4)):
+        costs[i, :c] = 1.0
+    rewards = np.tile(np.array([[0.2], [0.4], [0.6], [0.5]], np.float32), (1, T))
+    data = make_dataset(np.zeros((4, T, 3)), np.zeros((4, T, 2)), rewards, costs,
+                        np.full(4, T), episode_info={"snapshot": np.array([7, 7, 7, 9])})
+    out = policy_mean_labels(data)
+    np.testing.assert_allclose(episode_costs(out), [3, 3, 3, 4], atol=1e-6)
+    np.testing.assert_allclose(episode_returns(out), [4, 4, 4, 5], atol=1e-5)
+    # Within an episode the tokens still fall by the realised costs: episode 0 (cost 1, label 3)
+    # keeps 2 of its budget at the end, episode 2 (cost 6) ends 3 over it.
+    ctg = np.asarray(costs_to_go(out))
+    np.testing.assert_allclose(ctg[:, 0] - ctg[:, -1], [1, 2, 6, 4], atol=1e-6)
+    np.testing.assert_allclose(ctg[[0, 2], -1], [2, -3], atol=1e-6)
+    for f in ("observations", "actions", "rewards", "costs", "lengths"):
+        np.testing.assert_array_equal(getattr(out, f), getattr(data, f))
+
+
+def test_policy_mean_labels_name_the_missing_key():
+    with pytest.raises(ValueError, match="episode_info\\['snapshot'\\]"):
+        policy_mean_labels(line_data())

@@ -264,3 +264,35 @@ def test_cli_cost_token_options_reach_the_checkpoint(data_file, tmp_path):
     assert (model.reward_scale, model.cost_scale) == (0.1, 0.025)
     bad = runner.invoke(app, [*args, "--overwrite", "--cost-scale", "0"])
     assert bad.exit_code == 1 and "error: CDTConfig.cost_scale" in bad.output
+
+
+def test_cli_token_encoding_and_policy_labels_reach_the_checkpoint(data_file, tmp_path):
+    # Two behaviour policies (episode_info/snapshot): edges are fitted to the policy-mean labels,
+    # saved with the model, and read back by what evaluation loads.
+    data = synthetic_dataset(n=8)
+    data = make_dataset(data.observations, data.actions, data.rewards, data.costs,
+                        data.lengths, episode_info={"snapshot": np.arange(8) % 2},
+                        attrs={"task": TASK})
+    path = tmp_path / "policies.hdf5"
+    write_dataset(path, data)
+    runner, out = CliRunner(), tmp_path / "ramps"
+    args = ["pretrain", "--data", str(path), "--preset", "tiny", "--steps", "2", "--batch", "4",
+            "--chunk", "1", "--out", str(out)]
+    result = runner.invoke(app, [*args, "--token-bins", "4", "--token-rates",
+                                 "--labels", "policy"])
+    assert result.exit_code == 0, result.output
+    ckpt = load_checkpoint(out)
+    model, _, pre = configs_from_meta(ckpt.meta)
+    assert model == ckpt.cfg and pre.labels == "policy"
+    assert model.token_bins == 4 and model.token_rates
+    assert 2 <= len(model.return_edges) <= 5 and 2 <= len(model.cost_edges) <= 5
+    # Policy-mean labels: every episode of a policy starts from the same return-to-go.
+    means = [episode_returns(data)[np.arange(8) % 2 == k].mean() * 0.1 for k in (0, 1)]
+    assert model.return_edges[0] <= min(means) and model.return_edges[-1] >= max(means)
+    policy = load_policy(out, TASK)
+    assert policy.cfg.return_edges == model.return_edges
+    bad = runner.invoke(app, [*args, "--overwrite", "--labels", "luck"])
+    assert bad.exit_code == 1 and "error: PretrainConfig.labels" in bad.output
+    no_policies = runner.invoke(app, [*args[:2], str(data_file), *args[3:], "--overwrite",
+                                      "--labels", "policy"])
+    assert no_policies.exit_code == 1 and "episode_info['snapshot']" in no_policies.output

@@ -41,6 +41,16 @@ def pretrain(
     cost_offset: Annotated[float | None, typer.Option(
         help="The model reads cost_offset - scaled CTG (default: the preset's; cpu 5, "
              "OSRL 50).")] = None,
+    token_bins: Annotated[int | None, typer.Option(
+        min=0, help="Encode the RTG and CTG tokens as this many piecewise-linear ramps, edges "
+                    "fitted to the data (default: the preset's; 0 = linear, as OSRL).")] = None,
+    token_rates: Annotated[bool | None, typer.Option(
+        help="Feed RTG and CTG per step left, in whole-episode units (T / (T - t) times "
+             "each).")] = None,
+    labels: Annotated[str, typer.Option(
+        help="What the tokens count from: episode (its realised return and cost) or policy "
+             "(the mean of the episodes of its behaviour policy, episode_info/snapshot).")
+    ] = "episode",
 ) -> None:
     """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs.
 
@@ -48,16 +58,20 @@ def pretrain(
     back from the checkpoint. The token passes a LayerNorm that keeps only its direction once
     the scaled input outweighs the bias, so it should span about [-1, 1] over the cost-to-go
     range that matters (docs/CDT_FINDINGS.md, section 1): e.g. 0.025 and 1 for 0-80.
+    `--token-bins` avoids that limit (ramps keep each value's own direction), `--token-rates`
+    and `--labels policy` make the tokens name the policy rather than the layout's luck
+    (section 12).
     """
     from safecdt_jax import pretrain as pt
 
     overrides = {"seed": seed, "scale_actions": scale_actions,
-                 "standardize_obs": standardize_obs}
+                 "standardize_obs": standardize_obs, "labels": labels}
     for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk)):
         if value is not None:
             overrides[name] = value
-    model = {name: value for name, value in (("cost_scale", cost_scale),
-                                             ("cost_offset", cost_offset)) if value is not None}
+    model = {name: value for name, value in (
+        ("cost_scale", cost_scale), ("cost_offset", cost_offset), ("token_bins", token_bins),
+        ("token_rates", token_rates)) if value is not None}
     try:
         cfg = pt.default_pretrain(preset, **overrides)
         result = pt.pretrain(data, out, preset=preset, config=cfg, task=task, resume=resume,

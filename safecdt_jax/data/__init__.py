@@ -14,7 +14,13 @@ from safecdt_jax.data.dataset import (
     select_episodes,
 )
 from safecdt_jax.data.dsrl import KEYS, load_dataset, write_dataset
-from safecdt_jax.data.relabel import RelabelConfig, grid_filter, pareto_front, relabel_pareto
+from safecdt_jax.data.relabel import (
+    RelabelConfig,
+    grid_filter,
+    pareto_front,
+    policy_mean_labels,
+    relabel_pareto,
+)
 from safecdt_jax.data.summary import summarize_dataset
 from safecdt_jax.data.windows import (
     Windows,
@@ -45,6 +51,7 @@ __all__ = [
     "load_dataset",
     "make_dataset",
     "pareto_front",
+    "policy_mean_labels",
     "relabel_pareto",
     "returns_to_go",
     "sample_windows",

@@ -170,3 +170,33 @@ def relabel_pareto(key_or_rng, data: Dataset, cfg: RelabelConfig = RelabelConfig
         cost_offset=cost_offset.astype(np.float32),
         episode_info=info,
     )
+
+
+def policy_mean_labels(data: Dataset, key: str = "snapshot") -> Dataset:
+    """Each episode's return- and cost-to-go shifted so that at t=0 they equal the mean episode
+    return and cost of the policy that drove it (the episodes sharing `episode_info[key]`).
+
+    An expert's episode cost on a Goal task is mostly the layout's luck (docs/CDT_FINDINGS.md,
+    sections 10 and 12): a label of 10 is as often a fast policy's lucky layout as a careful
+    policy's normal one, so a model conditioned on realised outcomes cannot learn caution from
+    it. Labelled by its policy's expectation (as ESPER does with learnt clusters; here the
+    policies are known), the token names how the episode was driven. Within an episode the
+    tokens still fall by the realised rewards and costs, as in deployment, so a lucky episode
+    ends with budget left and an unlucky one below zero. Only `return_offset` / `cost_offset`
+    change. Raises ValueError when `episode_info` has no `key`.
+    """
+    if key not in data.episode_info:
+        raise ValueError(f"policy-mean labels need episode_info[{key!r}] (the behaviour policy "
+                         f"of each episode); this data set has {sorted(data.episode_info)}")
+    groups = np.unique(np.asarray(data.episode_info[key]), return_inverse=True)[1].reshape(-1)
+    real = np.asarray(data.lengths) > 0
+    count = np.maximum(np.bincount(groups, real.astype(np.float64)), 1.0)
+    shifts = []
+    for per_episode in (episode_returns(data), episode_costs(data)):
+        mean = np.bincount(groups, np.where(real, per_episode, 0.0)) / count
+        shifts.append(np.where(real, mean[groups] - per_episode, 0.0))
+    return dataclasses.replace(
+        data,
+        return_offset=(np.asarray(data.return_offset, np.float64) + shifts[0]).astype(np.float32),
+        cost_offset=(np.asarray(data.cost_offset, np.float64) + shifts[1]).astype(np.float32),
+    )

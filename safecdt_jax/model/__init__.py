@@ -34,6 +34,7 @@ from safecdt_jax.model.optim import (
     make_optimizer,
     make_train_step,
 )
+from safecdt_jax.model.tokens import fit_edges, piecewise_linear, with_token_edges
 
 __all__ = [
     "CDT",
@@ -49,6 +50,7 @@ __all__ = [
     "cdt_loss",
     "count_params",
     "dummy_batch",
+    "fit_edges",
     "gaussian_entropy",
     "gaussian_log_prob",
     "init_cdt",
@@ -62,5 +64,7 @@ __all__ = [
     "merge_lora",
     "newest_action",
     "param_shapes",
+    "piecewise_linear",
     "temperature_loss",
+    "with_token_edges",
 ]

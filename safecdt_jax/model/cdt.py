@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from safecdt_jax.model.config import CDTConfig
+from safecdt_jax.model.tokens import piecewise_linear, steps_left_scale
 
 Params = dict[str, Any]
 
@@ -170,10 +171,21 @@ class CDT(nn.Module):
             x = jnp.asarray(x)
             return jnp.where(valid.reshape(valid.shape + (1,) * (x.ndim - 2)), x, fill)
 
-        rtg = clean(batch["returns_to_go"]).astype(jnp.float32)[..., None]
-        ctg = clean(batch["costs_to_go"]).astype(jnp.float32)[..., None]
-        if cfg.cost_transform:
-            ctg = cfg.cost_offset - ctg
+        rtg = clean(batch["returns_to_go"]).astype(jnp.float32)
+        ctg = clean(batch["costs_to_go"]).astype(jnp.float32)
+        if cfg.token_rates:
+            scale = steps_left_scale(clean(batch["timesteps"]), cfg.episode_len)
+            rtg, ctg = rtg * scale, ctg * scale
+        if cfg.token_bins:
+            if not (cfg.return_edges and cfg.cost_edges):
+                raise ValueError("CDTConfig.token_bins > 0 needs fitted return_edges and "
+                                 "cost_edges (safecdt_jax.model.with_token_edges)")
+            rtg = piecewise_linear(rtg, cfg.return_edges)
+            ctg = piecewise_linear(ctg, cfg.cost_edges)
+        else:
+            rtg, ctg = rtg[..., None], ctg[..., None]
+            if cfg.cost_transform:
+                ctg = cfg.cost_offset - ctg
         states = clean(batch["states"]).astype(jnp.float32)
         actions = clean(batch["actions"]).astype(jnp.float32)
         t = jnp.clip(clean(batch["timesteps"]).astype(jnp.int32), 0, cfg.num_timestep_rows - 1)

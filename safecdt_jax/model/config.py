@@ -7,6 +7,8 @@ argument of `jax.jit` and two equal configs share one compiled program.
 from __future__ import annotations
 
 import dataclasses
+import itertools
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -71,6 +73,23 @@ class CDTConfig:
         lora_rank: rank r of the LoRA adapters.
         lora_alpha: LoRA alpha; the adapter update is scaled by `lora_alpha / lora_rank`.
         lora_targets: names of the attention projections that get adapters (q and v).
+        token_bins: 0 embeds the return-to-go and cost-to-go inputs linearly (OSRL). N > 0
+            encodes each as N piecewise-linear ramps (`piecewise_linear`) before its embedding,
+            with bin edges fitted to the pretraining data (`return_edges`, `cost_edges`; see
+            `safecdt_jax.model.tokens`). Why: the embedding LayerNorm divides each token by its
+            own scale, so a linear embedding `w * x` of a positive scalar keeps only its sign
+            once `|w * x|` outgrows the bias and the timestep embedding; the ramps turn a
+            value into a direction, which the LayerNorm keeps (docs/CDT_FINDINGS.md section 12).
+        token_rates: multiply the return-to-go and cost-to-go inputs by `T / (T - t)` (T the
+            horizon `episode_len`, t the step): the tokens then read the return and cost per
+            step still to come, in whole-episode units. A plain return-to-go of 10 is a careful
+            policy's whole episode and a fast one's last quarter; as a rate each policy keeps
+            its own value at every step, so the token names the behaviour without the
+            timestep embedding's help (docs/CDT_FINDINGS.md section 12).
+        return_edges: increasing bin edges of the ramps for the return-to-go input (scaled units,
+            RTG * reward_scale); empty until fitted. Values outside them saturate.
+        cost_edges: the same for the cost-to-go input (CTG * cost_scale, before any transform:
+            with ramps `cost_transform` is not applied, an affine flip the ramps do not need).
     """
 
     obs_dim: int
@@ -96,10 +115,29 @@ class CDTConfig:
     lora_rank: int = 16
     lora_alpha: float = 32.0
     lora_targets: tuple[str, ...] = ("query", "value")
+    token_bins: int = 0
+    token_rates: bool = False
+    return_edges: tuple[float, ...] = ()
+    cost_edges: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         check.integers(self, "obs_dim", "act_dim", "episode_len", "embed_dim", "num_layers",
                        "num_heads", "seq_len", "mlp_ratio", "lora_rank")
+        check.integers(self, "token_bins", minimum=0)
+        check.booleans(self, "token_rates", "cost_transform", "use_state_head")
+        for name in ("return_edges", "cost_edges"):
+            edges = getattr(self, name)
+            if not isinstance(edges, tuple) or any(
+                    not isinstance(e, float) or not math.isfinite(e) for e in edges):
+                raise ValueError(f"CDTConfig.{name} must be a tuple of finite floats, "
+                                 f"got {edges!r}")
+            if edges and (self.token_bins == 0 or len(edges) < 2
+                          or any(b <= a for a, b in itertools.pairwise(edges))):
+                raise ValueError(f"CDTConfig.{name} must be empty, or (with token_bins > 0) at "
+                                 f"least 2 strictly increasing edges, got {edges!r}")
+            if len(edges) > self.token_bins + 1:
+                raise ValueError(f"CDTConfig.{name} has {len(edges)} edges, more than "
+                                 f"token_bins + 1 = {self.token_bins + 1}")
         if self.embed_dim % self.num_heads:
             raise ValueError(
                 f"CDTConfig.embed_dim ({self.embed_dim}) must be divisible by "

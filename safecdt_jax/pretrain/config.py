@@ -8,6 +8,8 @@ from typing import Any
 
 from safecdt_jax import validate as check
 
+LABELS = ("episode", "policy")  # what the return- and cost-to-go tokens count from
+
 
 @dataclass(frozen=True)
 class PretrainConfig:
@@ -28,6 +30,11 @@ class PretrainConfig:
             safer episodes) before sampling. On by default, as in OSRL (`augment_percent=0.2`):
             it teaches the model to stay inside a cost target when the return target is
             unreachable, which is exactly how deployment conditions it.
+        labels: what an episode's return- and cost-to-go count from. `"episode"`: its own
+            realised return and cost (OSRL). `"policy"`: the mean return and cost of the
+            policy that drove it (`data.policy_mean_labels`, grouping by the expert data's
+            `episode_info/snapshot`), so that the tokens name the driving rather than the
+            layout's luck; the tokens still fall by the realised rewards and costs.
         scale_actions: train on actions divided by the data's largest |action| per dimension,
             then fold the scale into the saved weights (`safecdt_jax.pretrain.normalize`), which
             emit raw actions either way. Off by default, as in OSRL, whose agents' actions fill
@@ -46,6 +53,7 @@ class PretrainConfig:
     seed: int = 0
     c0: float = 70.0
     relabel: bool = True
+    labels: str = "episode"
     scale_actions: bool = False
     standardize_obs: bool = False
     checkpoint_every: int = 2000
@@ -56,6 +64,9 @@ class PretrainConfig:
         check.integers(self, "seed", "checkpoint_every", minimum=0)
         check.positive(self, "c0")
         check.booleans(self, "relabel", "scale_actions", "standardize_obs")
+        if self.labels not in LABELS:
+            raise ValueError(f"PretrainConfig.labels must be one of {', '.join(LABELS)}, "
+                             f"got {self.labels!r}")
 
     def replace(self, **changes: Any) -> PretrainConfig:
         """A copy with `changes` applied (validated again)."""

@@ -17,7 +17,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from safecdt_jax.data import Dataset, relabel_pareto, sample_windows, trajectory_weights
+from safecdt_jax.data import (
+    Dataset,
+    policy_mean_labels,
+    relabel_pareto,
+    sample_windows,
+    trajectory_weights,
+)
 from safecdt_jax.model import CDTConfig, OptimConfig, TrainState, make_train_step
 from safecdt_jax.pretrain.config import PretrainConfig
 
@@ -38,6 +44,11 @@ class TrainData(NamedTuple):
     cost_offset: jax.Array
 
 
+def labelled(data: Dataset, cfg: PretrainConfig) -> Dataset:
+    """The data with the return/cost labels `cfg.labels` asks for (before any relabelling)."""
+    return policy_mean_labels(data) if cfg.labels == "policy" else data
+
+
 def prepare_data(data: Dataset, cfg: PretrainConfig) -> tuple[TrainData, jax.Array, int]:
     """Relabel (if `cfg.relabel`), weight and move a data set to the device, once.
 
@@ -48,6 +59,7 @@ def prepare_data(data: Dataset, cfg: PretrainConfig) -> tuple[TrainData, jax.Arr
     every (re)start of the run.
     """
     n_real = data.n_episodes
+    data = labelled(data, cfg)
     if cfg.relabel:
         data = relabel_pareto(stream_key(cfg.seed, "relabel"), data)
     weights = trajectory_weights(data, c0=cfg.c0)

@@ -14,7 +14,15 @@ from typing import Any, NamedTuple
 import jax
 import numpy as np
 
-from safecdt_jax.data import Dataset, episode_costs, episode_returns, load_dataset
+from safecdt_jax.data import (
+    Dataset,
+    costs_to_go,
+    episode_costs,
+    episode_returns,
+    load_dataset,
+    returns_to_go,
+    trajectory_weights,
+)
 from safecdt_jax.model import (
     CDTConfig,
     OptimConfig,
@@ -22,6 +30,7 @@ from safecdt_jax.model import (
     count_params,
     init_train_state,
     param_shapes,
+    with_token_edges,
 )
 from safecdt_jax.paths import checkpoint_dir
 from safecdt_jax.pretrain.checkpoint import (
@@ -36,7 +45,7 @@ from safecdt_jax.pretrain.checkpoint import (
     task_sizes,
 )
 from safecdt_jax.pretrain.config import PretrainConfig, default_pretrain
-from safecdt_jax.pretrain.loop import History, prepare_data, stream_key, train
+from safecdt_jax.pretrain.loop import History, labelled, prepare_data, stream_key, train
 from safecdt_jax.pretrain.normalize import IONorm, fit_io_norm, normalise_dataset
 
 _PACKAGES = ("safecdt-jax", "jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy")
@@ -110,6 +119,20 @@ def _episode_len(data: Dataset, task: str) -> int:
     return sizes[2] if sizes is not None else int(data.horizon)
 
 
+def fit_token_edges(cdt_cfg: CDTConfig, data: Dataset, c0: float) -> CDTConfig:
+    """`cdt_cfg` with its token bin edges fitted to the steps pretraining samples: every valid
+    step's RTG and CTG, weighted by its episode's sampling weight `max(0, c0 - C_i)` (OSRL's
+    trajectory weights; Pareto-relabelled copies are not included). Unchanged when
+    `token_bins == 0` or the edges are already set (a resumed or overridden run)."""
+    if not cdt_cfg.token_bins or (cdt_cfg.return_edges and cdt_cfg.cost_edges):
+        return cdt_cfg
+    valid = data.valid_steps
+    weights = np.broadcast_to(trajectory_weights(data, c0=c0)[:, None], valid.shape)
+    steps = np.broadcast_to(np.arange(valid.shape[1])[None], valid.shape)
+    return with_token_edges(cdt_cfg, np.asarray(returns_to_go(data))[valid],
+                            np.asarray(costs_to_go(data))[valid], weights[valid], steps[valid])
+
+
 def plan(
     data_path: str | os.PathLike,
     out: str | os.PathLike | None = None,
@@ -140,6 +163,7 @@ def plan(
                          f"task horizon {episode_len}")
     cdt_cfg = CDTConfig.preset(preset, data.obs_dim, data.act_dim, episode_len,
                                **(model_overrides or {}))
+    cdt_cfg = fit_token_edges(cdt_cfg, labelled(data, cfg), cfg.c0)
     meta = {
         "format": FORMAT,
         "task": task,
@@ -261,21 +285,27 @@ def ensure_checkpoint(
     optim: OptimConfig | None = None,
     overwrite: bool = False,
     progress: bool = True,
+    model_overrides: dict[str, Any] | None = None,
+    pretrain_overrides: dict[str, Any] | None = None,
 ) -> Path:
     """The folder of a pretrained checkpoint for this data and config, training only if needed.
+
+    `model_overrides` replace fields of the preset's `CDTConfig` (e.g. `token_bins`),
+    `pretrain_overrides` fields of its `PretrainConfig` (e.g. `labels`).
 
     Reuses the checkpoint in `out` (default `paths.checkpoint_dir(task, preset)`) when its
     configs and data match and it has reached `steps` (default: the preset's); resumes it when
     it matches but is shorter; trains from scratch when the folder is empty. A checkpoint with
     another config raises CheckpointError naming the fields, unless `overwrite` (retrain).
     """
-    overrides: dict[str, Any] = {"seed": seed}
+    overrides: dict[str, Any] = {"seed": seed, **(pretrain_overrides or {})}
     if steps is not None:
         overrides["steps"] = steps
     if batch_size is not None:
         overrides["batch_size"] = batch_size
     cfg = default_pretrain(preset, **overrides)
-    spec = plan(data_path, out, preset=preset, config=cfg, optim=optim, task=task)
+    spec = plan(data_path, out, preset=preset, config=cfg, optim=optim, task=task,
+                model_overrides=model_overrides)
     done = checkpoint_steps(spec.out)
     retrain = False
     if done:
