@@ -77,12 +77,14 @@ def _assert_trees_equal(a, b):
 def test_config_defaults_and_validation():
     cpu = default_pretrain("cpu")
     assert cpu.relabel and (cpu.c0, cpu.steps, cpu.batch_size) == (70.0, 10_000, 32)
+    assert (cpu.relabel_percent, cpu.labels) == (0.2, "episode")  # OSRL's
     osrl = default_pretrain("osrl")
     assert (osrl.batch_size, osrl.steps) == (2048, 100_000)
     assert default_pretrain("cpu", steps=7).steps == 7
     bad = [dict(steps=0), dict(batch_size=-1), dict(chunk=1.5), dict(seed=-1), dict(c0=0.0),
            dict(max_to_keep=0), dict(checkpoint_every=-5), dict(relabel=1),
-           dict(scale_actions="yes"), dict(standardize_obs=0)]
+           dict(scale_actions="yes"), dict(standardize_obs=0), dict(relabel_percent=0.0),
+           dict(labels="luck")]
     for kwargs in bad:
         with pytest.raises(ValueError) as err:
             PretrainConfig(**kwargs)
@@ -296,3 +298,10 @@ def test_cli_token_encoding_and_policy_labels_reach_the_checkpoint(data_file, tm
     no_policies = runner.invoke(app, [*args[:2], str(data_file), *args[3:], "--overwrite",
                                       "--labels", "policy"])
     assert no_policies.exit_code == 1 and "episode_info['snapshot']" in no_policies.output
+
+
+def test_relabel_percent_sets_the_number_of_copies():
+    # 200 episodes: enough for the grid filter to keep bins (it drops those under 3 episodes).
+    data = synthetic_dataset(n=200)
+    copies = [prepare_data(data, CFG.replace(relabel_percent=p))[2] for p in (0.2, 1.0)]
+    assert copies == [14, 71]  # int(0.2 |F|) and int(1.0 |F|), |F| = 71 filtered episodes

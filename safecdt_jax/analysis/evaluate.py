@@ -82,14 +82,16 @@ def _ranks(values: np.ndarray) -> np.ndarray:
 def spearman(x, y) -> float:
     """Spearman's rank correlation of two equal-length sequences, in [-1, 1]: the Pearson
     correlation of their ranks (ties share their mean rank). NaN when either sequence has fewer
-    than two distinct values, where the correlation is undefined."""
+    than two distinct values, where the correlation is undefined. Exact to 12 decimals."""
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     if x.shape != y.shape or x.ndim != 1:
         raise ValueError(f"spearman needs two 1-d sequences of one length, got {x.shape} and "
                          f"{y.shape}")
     if len(np.unique(x)) < 2 or len(np.unique(y)) < 2:
         return float("nan")
-    return float(np.corrcoef(_ranks(x), _ranks(y))[0, 1])
+    # Rounded: the rank correlation of n points is a ratio of small integers, and float
+    # summation left 0.8 at 0.7999999999999999, failing a ">= 0.8" criterion it meets.
+    return round(float(np.corrcoef(_ranks(x), _ranks(y))[0, 1]), 12)
 
 
 def summarize_evaluation(task: str, res: dict[str, np.ndarray],

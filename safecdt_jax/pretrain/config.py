@@ -30,6 +30,8 @@ class PretrainConfig:
             safer episodes) before sampling. On by default, as in OSRL (`augment_percent=0.2`):
             it teaches the model to stay inside a cost target when the return target is
             unreachable, which is exactly how deployment conditions it.
+        relabel_percent: relabelled copies per grid-filtered episode (OSRL's `augment_percent`,
+            0.2).
         labels: what an episode's return- and cost-to-go count from. `"episode"`: its own
             realised return and cost (OSRL). `"policy"`: the mean return and cost of the
             policy that drove it (`data.policy_mean_labels`, grouping by the expert data's
@@ -53,6 +55,7 @@ class PretrainConfig:
     seed: int = 0
     c0: float = 70.0
     relabel: bool = True
+    relabel_percent: float = 0.2
     labels: str = "episode"
     scale_actions: bool = False
     standardize_obs: bool = False
@@ -64,6 +67,7 @@ class PretrainConfig:
         check.integers(self, "seed", "checkpoint_every", minimum=0)
         check.positive(self, "c0")
         check.booleans(self, "relabel", "scale_actions", "standardize_obs")
+        check.positive(self, "relabel_percent")
         if self.labels not in LABELS:
             raise ValueError(f"PretrainConfig.labels must be one of {', '.join(LABELS)}, "
                              f"got {self.labels!r}")

@@ -19,6 +19,7 @@ import numpy as np
 
 from safecdt_jax.data import (
     Dataset,
+    RelabelConfig,
     policy_mean_labels,
     relabel_pareto,
     sample_windows,
@@ -61,7 +62,8 @@ def prepare_data(data: Dataset, cfg: PretrainConfig) -> tuple[TrainData, jax.Arr
     n_real = data.n_episodes
     data = labelled(data, cfg)
     if cfg.relabel:
-        data = relabel_pareto(stream_key(cfg.seed, "relabel"), data)
+        data = relabel_pareto(stream_key(cfg.seed, "relabel"), data,
+                              RelabelConfig(percent=cfg.relabel_percent))
     weights = trajectory_weights(data, c0=cfg.c0)
     arrays = TrainData(*(np.asarray(getattr(data, f)) for f in TrainData._fields))
     return jax.device_put(arrays), jax.device_put(weights), data.n_episodes - n_real
@@ -115,8 +117,8 @@ def make_train_chunk(
     Cached: only the fields that shape the program (batch size, chunk, scales) key the cache,
     so runs differing in seed or length share one compile.
     """
-    program = cfg.replace(steps=1, seed=0, c0=1.0, relabel=False, checkpoint_every=0,
-                          max_to_keep=1)
+    program = cfg.replace(steps=1, seed=0, c0=1.0, relabel=False, relabel_percent=0.2,
+                          labels="episode", checkpoint_every=0, max_to_keep=1)
     return _train_chunk(cdt_cfg, optim, program, donate)
 
 
