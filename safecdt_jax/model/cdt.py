@@ -1,7 +1,8 @@
 """OSRL's Constrained Decision Transformer (CDT) as a pure Flax (linen) function.
 
 Per timestep the model reads four tokens in the order (return-to-go, cost-to-go, state, action),
-each a linear embedding plus a shared learned absolute-timestep embedding. A stack of pre-LN
+each a linear embedding plus a shared learned absolute-timestep embedding (the return and cost
+inputs optionally as piecewise-linear ramps and per step left: `model.tokens`). A stack of pre-LN
 causal blocks follows; the state token's output feeds a diagonal-Gaussian action head, the action
 token's output feeds a 2-class step-cost classifier and an optional next-state head.
 
