@@ -25,10 +25,40 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
+
 from benchmarks.common import machine, markdown_table, write_json
 
 COST_TARGETS = (10.0, 20.0, 40.0, 80.0)
 RETURN_RATIOS = (0.5, 1.0)
+
+
+def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
+    """How much the episode cost rises per doubling of the cost target, with a 95% interval.
+
+    `targets` [n] cost targets, `costs` [n, episodes] episode costs at each. The slope is the
+    least-squares fit of episode cost on log2(target) (cost steps per doubling); the interval
+    is the 2.5-97.5 percentile of the slopes of `draws` bootstrap resamples of the episodes,
+    drawn within each target. A model whose cost ignores its target has an interval around 0,
+    however its four means happen to order (a Spearman >= 0.8 among four exchangeable means
+    has probability 1/6). Returns `{"slope", "low", "high"}`.
+    """
+    x = np.log2(np.asarray(targets, np.float64))
+    y = np.asarray(costs, np.float64)
+    if y.ndim != 2 or y.shape[0] != x.size or x.size < 2 or np.ptp(x) == 0:
+        raise ValueError(f"doubling_slope needs >= 2 distinct targets and costs [targets, "
+                         f"episodes], got {x.size} targets and costs of shape {y.shape}")
+    xc = x - x.mean()
+
+    def fit(means):  # equal episodes per target: the OLS slope through the per-target means
+        return float(xc @ (means - means.mean()) / (xc @ xc))
+
+    rng = np.random.default_rng(seed)
+    pick = rng.integers(0, y.shape[1], size=(draws, *y.shape))
+    boot = np.take_along_axis(y[None], pick, axis=2).mean(axis=2)  # [draws, targets]
+    slopes = (boot - boot.mean(axis=1, keepdims=True)) @ xc / (xc @ xc)
+    low, high = np.percentile(slopes, [2.5, 97.5])
+    return {"slope": fit(y.mean(axis=1)), "low": float(low), "high": float(high)}
 
 
 def data_fingerprint(task: str) -> str:
@@ -80,12 +110,18 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
                                   data_median=median)
     rows = []
     for ratio, follow in zip(RETURN_RATIOS, summary["cost_following"], strict=True):
-        at = [r for r in summary["rows"] if r["target_return"] == follow["target_return"]]
+        index = [i for i, r in enumerate(summary["rows"])
+                 if r["target_return"] == follow["target_return"]]
+        at = [summary["rows"][i] for i in index]
         costs = [r["mean_cost"] for r in at]
         rho = follow["spearman"]
         below = costs[COST_TARGETS.index(20.0)] < bar_at_20(median)
+        episode_costs = np.asarray(summary["costs"])[index]
         rows.append({"return_ratio": ratio, "target_return": follow["target_return"],
                      "mean_costs": costs, "mean_returns": [r["mean_return"] for r in at],
+                     "episode_costs": episode_costs.round(3).tolist(),
+                     "slope_per_doubling": doubling_slope(COST_TARGETS, episode_costs,
+                                                          seed=seed),
                      "spearman": rho, "below_median_at_20": bool(below),
                      "passes": bool(rho is not None and rho >= 0.8 and below)})
     from safecdt_jax.data.collect import file_attrs
@@ -99,18 +135,23 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
             "episodes": episodes, "rows": rows, "seconds": time.perf_counter() - start}
 
 
+def _slope(row: dict) -> str:
+    s = row.get("slope_per_doubling")
+    return "n/a" if s is None else f"{s['slope']:+.1f} ({s['low']:+.1f}, {s['high']:+.1f})"
+
+
 def table(results: list[dict]) -> str:
     """One markdown row per (task, seed, return target), then a pass count per task."""
     head = ["task", "variant", "seed", "return target",
-            *[f"cost @ {c:g}" for c in COST_TARGETS], "Spearman", "data median",
-            "< max(median, 20) @ 20", "pass"]
+            *[f"cost @ {c:g}" for c in COST_TARGETS], "Spearman", "cost per doubling (95%)",
+            "data median", "< max(median, 20) @ 20", "pass"]
     rows = []
     for res in results:
         for r in res["rows"]:
             rho = "n/a" if r["spearman"] is None else f"{r['spearman']:.2f}"
             rows.append([res["task"], res.get("variant", "cpu"), res["seed"],
                          f"{r['return_ratio']:g} R_ref",
-                         *[f"{c:.1f}" for c in r["mean_costs"]], rho,
+                         *[f"{c:.1f}" for c in r["mean_costs"]], rho, _slope(r),
                          f"{res['data_median_cost']:.1f}", "yes" if r["below_median_at_20"]
                          else "no", "PASS" if r["passes"] else "fail"])
     lines = [markdown_table(head, rows), ""]
@@ -145,9 +186,11 @@ def main() -> None:
     # Cells of other data (an older collector, re-trained experts) are measured again.
     tasks = args.tasks.split(",")
     current = {task: data_fingerprint(task) for task in tasks}
+    # Cells without the slope are evaluated again (their cached checkpoints are reused).
     results = [r for r in old["results"] if r["episodes"] == args.episodes and (
         current[r["task"]] == r.get("data_fingerprint") if r["task"] in current else
-        r.get("data", {}).get("expert_collector_version") == EXPERT_COLLECTOR_VERSION)]
+        r.get("data", {}).get("expert_collector_version") == EXPERT_COLLECTOR_VERSION)
+        and all("slope_per_doubling" in row for row in r["rows"])]
     done = {(r["task"], r["seed"], r.get("variant", "cpu")) for r in results}
     for task in tasks:
         for seed in (int(s) for s in args.seeds.split(",")):

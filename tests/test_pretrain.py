@@ -305,3 +305,16 @@ def test_relabel_percent_sets_the_number_of_copies():
     data = synthetic_dataset(n=200)
     copies = [prepare_data(data, CFG.replace(relabel_percent=p))[2] for p in (0.2, 1.0)]
     assert copies == [14, 71]  # int(0.2 |F|) and int(1.0 |F|), |F| = 71 filtered episodes
+
+
+def test_metas_from_before_the_token_options_match_todays_defaults(full_run):
+    from safecdt_jax.pretrain.checkpoint import config_diff
+
+    meta = full_run.meta
+    old = {**meta, "model": {k: v for k, v in meta["model"].items() if k not in (
+        "token_bins", "token_rates", "return_edges", "cost_edges")},
+        "pretrain": {k: v for k, v in meta["pretrain"].items()
+                     if k not in ("labels", "relabel_percent")}}
+    assert config_diff(old, meta) == []
+    ramps = {**meta, "model": {**meta["model"], "token_bins": 4}}
+    assert config_diff(old, ramps) == ["model.token_bins: 0 -> 4"]

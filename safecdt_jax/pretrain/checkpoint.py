@@ -31,7 +31,10 @@ RESUMABLE_FIELDS = frozenset({"pretrain.steps", "pretrain.checkpoint_every",
 
 # Run-config fields added after checkpoints were first written, with the value those older
 # checkpoints were trained with; a meta without them reads as these.
-LEGACY_PRETRAIN = {"scale_actions": False, "standardize_obs": False}
+LEGACY_PRETRAIN = {"scale_actions": False, "standardize_obs": False, "relabel_percent": 0.2,
+                   "labels": "episode"}
+# Model fields added later, likewise (OSRL's linear token encoding).
+LEGACY_MODEL = {"token_bins": 0, "token_rates": False, "return_edges": [], "cost_edges": []}
 # The token scales moved from the run config to the model config; older metas keep them there.
 TOKEN_FIELDS = ("reward_scale", "cost_scale")
 
@@ -223,14 +226,15 @@ def config_diff(saved: dict[str, Any], requested: dict[str, Any]) -> list[str]:
 
     Compares the task, the three configs and the data set fingerprint; fields in
     `RESUMABLE_FIELDS` are ignored (a resumed run may train longer or save more often), and a
-    run-config field missing from an older meta reads as its `LEGACY_PRETRAIN` value.
+    run-config or model field missing from an older meta reads as its `LEGACY_PRETRAIN` /
+    `LEGACY_MODEL` value.
     """
     diffs = []
     saved, requested = migrate_meta(saved), migrate_meta(requested)
     for section in ("model", "optim", "pretrain"):
         a, b = saved.get(section, {}), requested.get(section, {})
-        if section == "pretrain":
-            a, b = {**LEGACY_PRETRAIN, **a}, {**LEGACY_PRETRAIN, **b}
+        legacy = {"pretrain": LEGACY_PRETRAIN, "model": LEGACY_MODEL}.get(section, {})
+        a, b = {**legacy, **a}, {**legacy, **b}
         for name in sorted(set(a) | set(b)):
             field = f"{section}.{name}"
             if field not in RESUMABLE_FIELDS and a.get(name) != b.get(name):
