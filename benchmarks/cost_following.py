@@ -2,7 +2,8 @@
 
     python -m benchmarks.cost_following [--tasks CarGoal1,CarCircle1,PointCircle1]
         [--seeds 0,1,2,3] [--episodes 20] [--token-bins N] [--token-rates]
-        [--labels episode|policy] [--out benchmarks/results/cost_following.json]
+        [--labels episode|policy] [--scale-actions] [--standardize-obs]
+        [--out benchmarks/results/cost_following.json]
 
 For each source task: the default source data (`ensure_source_data`: the committed experts'
 snapshots, grid-filtered as DSRL does), a `cpu`-preset CDT pretrained with each seed at the
@@ -11,7 +12,8 @@ targets of half and all of the reference return R_ref. A (task, seed, return tar
 the mean cost rises with the cost target (Spearman >= 0.8) and, at target 20, lies below the
 data's median episode cost, or below 20 itself where the median is lower (PointCircle1's expert
 data have median 0: 60% of their episodes cost nothing, and no policy's mean goes below 0).
-`--token-bins`, `--token-rates` and `--labels` pretrain a variant of the `cpu` preset
+`--token-bins`, `--token-rates`, `--labels`, `--scale-actions` and `--standardize-obs` pretrain a
+variant of the `cpu` preset
 (docs/CDT_FINDINGS.md section 12); each variant's cells are kept apart. Results go to the JSON
 after every (task, seed), atomically, and a rerun skips what is there, so an interrupted run
 continues.
@@ -31,6 +33,7 @@ from benchmarks.common import machine, markdown_table, write_json
 
 COST_TARGETS = (10.0, 20.0, 40.0, 80.0)
 RETURN_RATIOS = (0.5, 1.0)
+PRETRAIN_FIELDS = ("labels", "scale_actions", "standardize_obs")  # the rest are CDTConfig's
 
 
 def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
@@ -98,7 +101,7 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
     data = ensure_source_data(task)
     median = summarize_dataset(data)["cost_median"]
     variant = dict(variant or {})
-    pre = {k: variant[k] for k in ("labels",) if k in variant}
+    pre = {k: variant[k] for k in PRETRAIN_FIELDS if k in variant}
     model = {k: v for k, v in variant.items() if k not in pre}
     name = variant_name(variant)
     out = paths.cache_root() / "checkpoints" / f"{task}-{name}-seed{seed}"
@@ -174,11 +177,16 @@ def main() -> None:
     ap.add_argument("--token-bins", type=int, default=None)
     ap.add_argument("--token-rates", action="store_true")
     ap.add_argument("--labels", choices=("episode", "policy"), default=None)
+    ap.add_argument("--scale-actions", action="store_true")
+    ap.add_argument("--standardize-obs", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/cost_following.json"))
     args = ap.parse_args()
     variant = {k: v for k, v in (("token_bins", args.token_bins),
                                  ("token_rates", args.token_rates or None),
-                                 ("labels", args.labels)) if v is not None}
+                                 ("labels", args.labels),
+                                 ("scale_actions", args.scale_actions or None),
+                                 ("standardize_obs", args.standardize_obs or None))
+               if v is not None}
     name = variant_name(variant)
     old = json.loads(args.out.read_text()) if args.out.exists() else {"results": []}
     from safecdt_jax.experts.collect import EXPERT_COLLECTOR_VERSION
