@@ -14,7 +14,7 @@ data's median episode cost, or below 20 itself where the median is lower (PointC
 data have median 0: 60% of their episodes cost nothing, and no policy's mean goes below 0).
 `--token-bins`, `--token-rates`, `--labels`, `--scale-actions` and `--standardize-obs` pretrain a
 variant of the `cpu` preset
-(docs/CDT_FINDINGS.md section 12); each variant's cells are kept apart. Results go to the JSON
+(docs/CDT_FINDINGS.md sections 12-13); each variant's cells are kept apart. Results go to the JSON
 after every (task, seed), atomically, and a rerun skips what is there, so an interrupted run
 continues.
 """
@@ -88,8 +88,8 @@ def variant_name(variant: dict) -> str:
 def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) -> dict:
     """Pretrain (or reuse) seed `seed`'s CDT on `task`'s default data and evaluate it.
 
-    `variant`: `CDTConfig` fields (`token_bins`, `token_rates`) and `PretrainConfig.labels`
-    that differ from the `cpu` preset."""
+    `variant`: `CDTConfig` fields (`token_bins`, `token_rates`) and `PretrainConfig` fields
+    (`PRETRAIN_FIELDS`) that differ from the `cpu` preset."""
     from safecdt_jax import paths
     from safecdt_jax.analysis.evaluate import evaluate_checkpoint
     from safecdt_jax.data import summarize_dataset
