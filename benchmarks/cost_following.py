@@ -88,8 +88,8 @@ def variant_name(variant: dict) -> str:
 def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) -> dict:
     """Pretrain (or reuse) seed `seed`'s CDT on `task`'s default data and evaluate it.
 
-    `variant`: `CDTConfig` fields (`token_bins`, `token_rates`) and `PretrainConfig` fields
-    (`PRETRAIN_FIELDS`) that differ from the `cpu` preset."""
+    `variant`: `CDTConfig` fields (`token_bins`, `token_rates`, `constant_targets`) and
+    `PretrainConfig` fields (`PRETRAIN_FIELDS`) that differ from the `cpu` preset."""
     from safecdt_jax import paths
     from safecdt_jax.analysis.evaluate import evaluate_checkpoint
     from safecdt_jax.data import summarize_dataset
@@ -176,13 +176,15 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--token-bins", type=int, default=None)
     ap.add_argument("--token-rates", action="store_true")
-    ap.add_argument("--labels", choices=("episode", "policy"), default=None)
+    ap.add_argument("--constant-targets", action="store_true")
+    ap.add_argument("--labels", choices=("episode", "policy", "auto"), default=None)
     ap.add_argument("--scale-actions", action="store_true")
     ap.add_argument("--standardize-obs", action="store_true")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/cost_following.json"))
     args = ap.parse_args()
     variant = {k: v for k, v in (("token_bins", args.token_bins),
                                  ("token_rates", args.token_rates or None),
+                                 ("constant_targets", args.constant_targets or None),
                                  ("labels", args.labels),
                                  ("scale_actions", args.scale_actions or None),
                                  ("standardize_obs", args.standardize_obs or None))

@@ -16,7 +16,7 @@ from safecdt_jax.data import (
     trajectory_weights,
 )
 
-sample_jit = jax.jit(sample_windows, static_argnames=("batch", "K"))
+sample_jit = jax.jit(sample_windows, static_argnames=("batch", "K", "constant"))
 
 
 def hand_data():
@@ -94,6 +94,24 @@ def test_windows_match_hand_computed_values():
         np.testing.assert_array_equal(w.states[b, :, 0], e["obs"])
         want_actions = np.add(e["obs"], np.multiply(0.5, e["mask"]))
         np.testing.assert_array_equal(w.actions[b, :, 0], want_actions)
+
+
+def test_constant_windows_carry_the_episode_t0_tokens_at_every_valid_step():
+    data = dataclasses.replace(hand_data(), cost_offset=np.array([4.0, 0.0], np.float32))
+    w = sample_jit(jax.random.key(1), data, batch=64, K=4, reward_scale=0.1, cost_scale=0.5,
+                   constant=True)
+    plain = sample_jit(jax.random.key(1), data, batch=64, K=4, reward_scale=0.1,
+                       cost_scale=0.5)
+    t0 = {0: (0.6, 3.0), 1: (0.5, 1.0)}  # (RTG, (CTG + offset)) * scales at t = 0
+    assert set(np.asarray(w.episode_index).tolist()) == {0, 1}
+    for b in range(64):
+        rtg, ctg = t0[int(w.episode_index[b])]
+        np.testing.assert_allclose(w.returns_to_go[b], rtg * w.mask[b], rtol=1e-6)
+        np.testing.assert_allclose(w.costs_to_go[b], ctg * w.mask[b], rtol=1e-6)
+    # Only the tokens differ: the same key draws the same windows.
+    for name in ("states", "actions", "costs", "timesteps", "mask", "start"):
+        np.testing.assert_array_equal(getattr(w, name), getattr(plain, name), err_msg=name)
+    assert not np.array_equal(w.costs_to_go, plain.costs_to_go)
 
 
 def test_padding_mask_and_scales_on_full_length_episode():

@@ -59,6 +59,22 @@ def test_targets_decrement_by_realized_reward_and_cost():
     assert ep["return"] == pytest.approx(ep["rewards"].sum())
 
 
+def test_constant_targets_hold_all_episode():
+    env, params, cfg, model, _ = _setup()
+    const = cfg.replace(constant_targets=True)
+    ep = jax.device_get(jax.jit(lambda k: cdt_episode(k, env, params, model, const, 40.0, 5.0))(
+        jax.random.PRNGKey(3)))
+    assert ep["costs"].sum() > 5 and ep["rewards"].sum() != 0  # a decrement would show
+    np.testing.assert_array_equal(ep["returns_to_go"], 40.0)
+    np.testing.assert_array_equal(ep["costs_to_go"], 5.0)
+
+
+def test_constant_targets_exclude_token_rates():
+    _, _, cfg, _, _ = _setup()
+    with pytest.raises(ValueError, match="token_rates and constant_targets"):
+        cfg.replace(constant_targets=True, token_rates=True)
+
+
 def test_unclipped_ctg_goes_negative():
     env, params, cfg, model, _ = _setup()
     ep = jax.jit(lambda k: cdt_episode(k, env, params, model, cfg, 40.0, 5.0, clip_ctg=False))(

@@ -318,3 +318,35 @@ def test_metas_from_before_the_token_options_match_todays_defaults(full_run):
     assert config_diff(old, meta) == []
     ramps = {**meta, "model": {**meta["model"], "token_bins": 4}}
     assert config_diff(old, ramps) == ["model.token_bins: 0 -> 4"]
+
+
+def test_constant_targets_fit_the_token_edges_on_each_episode_t0_tokens():
+    from safecdt_jax.model import CDTConfig
+    from safecdt_jax.pretrain.run import fit_token_edges
+
+    rewards = np.array([[1, 2, 3, 0], [1, 1, 1, 1]], np.float32)  # returns 6 and 4
+    costs = np.array([[0, 1, 1, 0], [1, 0, 0, 1]], np.float32)  # costs 2 and 2
+    data = make_dataset(np.zeros((2, 4, 3), np.float32), np.zeros((2, 4, 1), np.float32),
+                        rewards, costs, [3, 4])
+    cfg = CDTConfig(obs_dim=3, act_dim=1, episode_len=4, token_bins=4, cost_scale=0.5)
+    const = fit_token_edges(cfg.replace(constant_targets=True), data, c0=10.0)
+    assert const.return_edges[0] == pytest.approx(0.4) and const.return_edges[-1] == \
+        pytest.approx(0.6)  # RTG * 0.1 of the t=0 steps only
+    assert const.cost_edges == pytest.approx((1.0, 2.0))  # one value, 2 * 0.5: (v, v + 1)
+    to_go = fit_token_edges(cfg, data, c0=10.0)
+    assert to_go.return_edges[0] == pytest.approx(0.1)  # the last step of episode 1: 1
+    assert to_go.cost_edges[0] == pytest.approx(0.5)
+
+
+def test_auto_labels_use_the_policies_only_where_the_data_name_them():
+    from safecdt_jax.data import episode_costs
+    from safecdt_jax.pretrain.loop import labelled
+
+    data = synthetic_dataset(n=8)
+    named = make_dataset(data.observations, data.actions, data.rewards, data.costs,
+                         data.lengths, episode_info={"snapshot": np.arange(8) % 2})
+    auto = PretrainConfig(labels="auto")
+    np.testing.assert_allclose(episode_costs(labelled(named, auto)),
+                               episode_costs(labelled(named, auto.replace(labels="policy"))))
+    assert len(set(np.round(episode_costs(labelled(named, auto)), 4))) == 2  # one per policy
+    np.testing.assert_array_equal(episode_costs(labelled(data, auto)), episode_costs(data))

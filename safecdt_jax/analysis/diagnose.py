@@ -44,7 +44,8 @@ def conditioning_gaps(ckpt: str | os.PathLike, data_path: str | os.PathLike,
     data, weights, _ = prepare_data(load_dataset(data_path), cfg)
     k_draw, k_perm = jax.random.split(jax.random.key(seed))
     win = sample_windows(k_draw, data, windows, model.cfg.seq_len, weights,
-                         model.cfg.reward_scale, model.cfg.cost_scale)
+                         model.cfg.reward_scale, model.cfg.cost_scale,
+                         model.cfg.constant_targets)
     out = shuffle_gaps(model.params, model.cfg, win._asdict(), k_perm)  # as pretraining's batch
     return {**out, "share_ctg_positive": float(jnp.mean(win.costs_to_go[:, 0] > 0))}
 

@@ -47,9 +47,13 @@ def pretrain(
     token_rates: Annotated[bool | None, typer.Option(
         help="Feed RTG and CTG per step left, in whole-episode units (T / (T - t) times "
              "each).")] = None,
+    constant_targets: Annotated[bool | None, typer.Option(
+        help="Tokens hold each episode's t=0 return and cost at every step, and rollouts "
+             "keep their targets (not decremented); best with --labels policy.")] = None,
     labels: Annotated[str, typer.Option(
         help="What the tokens count from: episode (its realised return and cost) or policy "
-             "(the mean of the episodes of its behaviour policy, episode_info/snapshot).")
+             "(the mean of the episodes of its behaviour policy, episode_info/snapshot), or "
+             "auto (policy where the data have snapshots).")
     ] = "episode",
 ) -> None:
     """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs.
@@ -60,7 +64,7 @@ def pretrain(
     range that matters (docs/CDT_FINDINGS.md, section 1): e.g. 0.025 and 1 for 0-80.
     `--token-bins` avoids that limit (ramps keep each value's own direction), `--token-rates`
     and `--labels policy` make the tokens name the policy rather than the layout's luck
-    (section 12).
+    (section 12); `--constant-targets --labels policy` keeps that name all episode (section 14).
     """
     from safecdt_jax import pretrain as pt
 
@@ -71,7 +75,8 @@ def pretrain(
             overrides[name] = value
     model = {name: value for name, value in (
         ("cost_scale", cost_scale), ("cost_offset", cost_offset), ("token_bins", token_bins),
-        ("token_rates", token_rates)) if value is not None}
+        ("token_rates", token_rates), ("constant_targets", constant_targets))
+        if value is not None}
     try:
         cfg = pt.default_pretrain(preset, **overrides)
         result = pt.pretrain(data, out, preset=preset, config=cfg, task=task, resume=resume,

@@ -123,15 +123,17 @@ def sample_windows(
     weights=None,
     reward_scale: float = 0.1,
     cost_scale: float = 1.0,
+    constant: bool = False,
 ) -> Windows:
     """Sample `batch` windows of `K` steps, as OSRL's SequenceDataset (docs/METHOD.md A.2).
 
     An episode is drawn with probability proportional to `weights` [n] (e.g. `trajectory_weights`;
     empty episodes never), or, with `weights=None`, proportional to its length, i.e. uniform over
     all valid (episode, step) positions (the online buffer rule). The start is uniform over
-    [0, len-1]. Returns `Windows`; RTG/CTG are scaled by `reward_scale` / `cost_scale`.
-    jit with `static_argnames=("batch", "K")`. If no episode has positive weight (an empty buffer)
-    the draw is arbitrary and its window is fully masked.
+    [0, len-1]. Returns `Windows`; RTG/CTG are scaled by `reward_scale` / `cost_scale`;
+    `constant=True` (`CDTConfig.constant_targets`) gives every step its episode's t=0 values.
+    jit with `static_argnames=("batch", "K", "constant")`. If no episode has positive weight
+    (an empty buffer) the draw is arbitrary and its window is fully masked.
     """
     lengths = jnp.asarray(data.lengths, jnp.int32)
     n, horizon = data.rewards.shape
@@ -160,8 +162,9 @@ def sample_windows(
         return_offset=_offset(data, "return_offset", n)[episode],
         cost_offset=_offset(data, "cost_offset", n)[episode],
     )
-    rtg = jnp.take_along_axis(returns_to_go(picked), step, axis=1)
-    ctg = jnp.take_along_axis(costs_to_go(picked), step, axis=1)
+    at = jnp.zeros_like(step) if constant else step
+    rtg = jnp.take_along_axis(returns_to_go(picked), at, axis=1)
+    ctg = jnp.take_along_axis(costs_to_go(picked), at, axis=1)
     return Windows(
         states=window(data.observations),
         actions=window(data.actions),

@@ -97,7 +97,7 @@ def lora_finetune(
         k_win, k_drop = jax.random.split(k)
         win = sample_windows(
             k_win, buffer, cfg.lora_batch, model_cfg.seq_len, None,
-            model_cfg.reward_scale, model_cfg.cost_scale,
+            model_cfg.reward_scale, model_cfg.cost_scale, model_cfg.constant_targets,
         )
         valid = win.mask[:, 0] > 0
         ctg_first = win.costs_to_go[:, 0] / model_cfg.cost_scale  # back to raw cost units

@@ -100,7 +100,8 @@ def cdt_episode(
         target_return: initial return-to-go, raw return units (traced scalar ok).
         target_cost: initial cost-to-go, raw cost units = cost steps (traced scalar ok).
         clip_ctg: clip the cost-to-go at 0 once the budget is spent (default, docs/METHOD.md
-            section 1); False keeps OSRL's rule of letting it go negative.
+            section 1); False keeps OSRL's rule of letting it go negative. Neither applies
+            with `cfg.constant_targets`, whose tokens keep the targets all episode.
         horizon: steps T to run (static); None = the env's time limit. A shorter horizon cuts
             the episode there (for tests and quick looks).
         stop_cost: the runtime budget (cost units; traced scalar ok): the episode ends after
@@ -119,6 +120,8 @@ def cdt_episode(
         return action, (ctx._replace(actions=ctx.actions.at[-1].set(action)), rtg, ctg)
 
     def observe(carry, reward, cost):
+        if cfg.constant_targets:  # the tokens name the episode's targets; nothing is spent
+            return carry
         ctx, rtg, ctg = carry
         new_ctg = jnp.maximum(ctg - cost, 0.0) if clip_ctg else ctg - cost
         return ctx, rtg - reward, new_ctg

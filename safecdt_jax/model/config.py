@@ -86,6 +86,15 @@ class CDTConfig:
             policy's whole episode and a fast one's last quarter; as a rate each policy keeps
             its own value at every step, so the token names the behaviour without the
             timestep embedding's help (docs/CDT_FINDINGS.md section 12).
+        constant_targets: False (OSRL): the return and cost tokens are the return- and
+            cost-to-go, falling by the realised rewards and costs within an episode, in training
+            windows and in rollouts alike. True: every step's tokens hold the episode's t=0 labels
+            (its return and cost, or with `PretrainConfig.labels="policy"` its policy's means),
+            and a rollout keeps the targets it started with; the tokens then name how an
+            episode is driven rather than what is left of it. Why: a conditional clone of
+            CarGoal1 expert data follows a constant policy-mean cost label and loses the
+            response once the label is decremented (docs/CDT_FINDINGS.md sections 13-14).
+            A documented deviation from OSRL; not with `token_rates`.
         return_edges: increasing bin edges of the ramps for the return-to-go input (scaled units,
             RTG * reward_scale); empty until fitted. Values outside them saturate.
         cost_edges: the same for the cost-to-go input (CTG * cost_scale, before any transform:
@@ -117,6 +126,7 @@ class CDTConfig:
     lora_targets: tuple[str, ...] = ("query", "value")
     token_bins: int = 0
     token_rates: bool = False
+    constant_targets: bool = False
     return_edges: tuple[float, ...] = ()
     cost_edges: tuple[float, ...] = ()
 
@@ -124,7 +134,11 @@ class CDTConfig:
         check.integers(self, "obs_dim", "act_dim", "episode_len", "embed_dim", "num_layers",
                        "num_heads", "seq_len", "mlp_ratio", "lora_rank")
         check.integers(self, "token_bins", minimum=0)
-        check.booleans(self, "token_rates", "cost_transform", "use_state_head")
+        check.booleans(self, "token_rates", "constant_targets", "cost_transform",
+                       "use_state_head")
+        if self.token_rates and self.constant_targets:
+            raise ValueError("CDTConfig.token_rates and constant_targets exclude each other: a "
+                             "rate divides what is left, a constant target never shrinks")
         for name in ("return_edges", "cost_edges"):
             edges = getattr(self, name)
             if not isinstance(edges, tuple) or any(

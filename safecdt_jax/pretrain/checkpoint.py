@@ -34,7 +34,8 @@ RESUMABLE_FIELDS = frozenset({"pretrain.steps", "pretrain.checkpoint_every",
 LEGACY_PRETRAIN = {"scale_actions": False, "standardize_obs": False, "relabel_percent": 0.2,
                    "labels": "episode"}
 # Model fields added later, likewise (OSRL's linear token encoding).
-LEGACY_MODEL = {"token_bins": 0, "token_rates": False, "return_edges": [], "cost_edges": []}
+LEGACY_MODEL = {"token_bins": 0, "token_rates": False, "constant_targets": False,
+                "return_edges": [], "cost_edges": []}
 # The token scales moved from the run config to the model config; older metas keep them there.
 TOKEN_FIELDS = ("reward_scale", "cost_scale")
 

@@ -8,7 +8,7 @@ from typing import Any
 
 from safecdt_jax import validate as check
 
-LABELS = ("episode", "policy")  # what the return- and cost-to-go tokens count from
+LABELS = ("episode", "policy", "auto")  # what the return- and cost-to-go tokens count from
 
 
 @dataclass(frozen=True)
@@ -36,7 +36,10 @@ class PretrainConfig:
             realised return and cost (OSRL). `"policy"`: the mean return and cost of the
             policy that drove it (`data.policy_mean_labels`, grouping by the expert data's
             `episode_info/snapshot`), so that the tokens name the driving rather than the
-            layout's luck; the tokens still fall by the realised rewards and costs.
+            layout's luck; the tokens still fall by the realised rewards and costs (unless
+            `CDTConfig.constant_targets`). `"auto"`: `"policy"` when the data name each
+            episode's behaviour policy (`episode_info/snapshot`, as expert data do), else
+            `"episode"` (scripted or downloaded DSRL data).
         scale_actions: train on actions divided by the data's largest |action| per dimension,
             then fold the scale into the saved weights (`safecdt_jax.pretrain.normalize`), which
             emit raw actions either way. Off by default, as in OSRL, whose agents' actions fill

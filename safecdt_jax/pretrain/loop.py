@@ -47,7 +47,8 @@ class TrainData(NamedTuple):
 
 def labelled(data: Dataset, cfg: PretrainConfig) -> Dataset:
     """The data with the return/cost labels `cfg.labels` asks for (before any relabelling)."""
-    return policy_mean_labels(data) if cfg.labels == "policy" else data
+    policy = cfg.labels == "policy" or (cfg.labels == "auto" and "snapshot" in data.episode_info)
+    return policy_mean_labels(data) if policy else data
 
 
 def prepare_data(data: Dataset, cfg: PretrainConfig) -> tuple[TrainData, jax.Array, int]:
@@ -98,6 +99,7 @@ def make_update(
         windows = sample_windows(
             k_batch, data, cfg.batch_size, cdt_cfg.seq_len, weights,
             reward_scale=cdt_cfg.reward_scale, cost_scale=cdt_cfg.cost_scale,
+            constant=cdt_cfg.constant_targets,
         )
         return train_step(state, windows._asdict(), k_dropout)
 
