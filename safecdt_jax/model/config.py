@@ -94,7 +94,8 @@ class CDTConfig:
             episode is driven rather than what is left of it. Why: a conditional clone of
             CarGoal1 expert data follows a constant policy-mean cost label and loses the
             response once the label is decremented; the `cpu` CDT did not follow with it
-            alone (docs/CDT_FINDINGS.md sections 13-14). A documented deviation from OSRL; not with `token_rates`.
+            alone (docs/CDT_FINDINGS.md sections 13-14). A documented deviation from OSRL;
+            not with `token_rates`.
         return_edges: increasing bin edges of the ramps for the return-to-go input (scaled units,
             RTG * reward_scale); empty until fitted. Values outside them saturate.
         cost_edges: the same for the cost-to-go input (CTG * cost_scale, before any transform:
