@@ -36,18 +36,28 @@ def _offset(data, name: str, n: int):
     return jnp.zeros(n, jnp.float32) if offset is None else jnp.asarray(offset, jnp.float32)
 
 
-def returns_to_go(data):
-    """Raw (unscaled) return-to-go [n, T]: suffix sums of rewards + `return_offset`, 0 past len."""
-    rtg = suffix_sums(data.rewards, data.lengths)
-    valid = _valid(data.lengths, rtg.shape[1])
-    return rtg + jnp.where(valid, _offset(data, "return_offset", rtg.shape[0])[:, None], 0.0)
+def _to_go(values, lengths, offset, constant: bool):
+    out = suffix_sums(values, lengths)
+    valid = _valid(lengths, out.shape[1])
+    if constant:  # every step carries its episode's t=0 value
+        out = jnp.where(valid, out[:, :1], 0.0)
+    return out + jnp.where(valid, offset[:, None], 0.0)
 
 
-def costs_to_go(data):
-    """Raw (unscaled) cost-to-go [n, T]: suffix sums of costs plus `cost_offset`, 0 past len."""
-    ctg = suffix_sums(data.costs, data.lengths)
-    valid = _valid(data.lengths, ctg.shape[1])
-    return ctg + jnp.where(valid, _offset(data, "cost_offset", ctg.shape[0])[:, None], 0.0)
+def returns_to_go(data, constant: bool = False):
+    """Raw (unscaled) return-to-go [n, T]: suffix sums of rewards + `return_offset`, 0 past len.
+
+    `constant=True` (`CDTConfig.constant_targets`): each valid step holds the t=0 value."""
+    return _to_go(data.rewards, data.lengths,
+                  _offset(data, "return_offset", data.rewards.shape[0]), constant)
+
+
+def costs_to_go(data, constant: bool = False):
+    """Raw (unscaled) cost-to-go [n, T]: suffix sums of costs plus `cost_offset`, 0 past len.
+
+    `constant=True` (`CDTConfig.constant_targets`): each valid step holds the t=0 value."""
+    return _to_go(data.costs, data.lengths,
+                  _offset(data, "cost_offset", data.costs.shape[0]), constant)
 
 
 def episode_costs(data) -> np.ndarray:
@@ -162,9 +172,8 @@ def sample_windows(
         return_offset=_offset(data, "return_offset", n)[episode],
         cost_offset=_offset(data, "cost_offset", n)[episode],
     )
-    at = jnp.zeros_like(step) if constant else step
-    rtg = jnp.take_along_axis(returns_to_go(picked), at, axis=1)
-    ctg = jnp.take_along_axis(costs_to_go(picked), at, axis=1)
+    rtg = jnp.take_along_axis(returns_to_go(picked, constant), step, axis=1)
+    ctg = jnp.take_along_axis(costs_to_go(picked, constant), step, axis=1)
     return Windows(
         states=window(data.observations),
         actions=window(data.actions),

@@ -129,9 +129,8 @@ def fit_token_edges(cdt_cfg: CDTConfig, data: Dataset, c0: float) -> CDTConfig:
     valid = data.valid_steps
     weights = np.broadcast_to(trajectory_weights(data, c0=c0)[:, None], valid.shape)
     steps = np.broadcast_to(np.arange(valid.shape[1])[None], valid.shape)
-    rtg, ctg = np.asarray(returns_to_go(data)), np.asarray(costs_to_go(data))
-    if cdt_cfg.constant_targets:  # every step carries its episode's t=0 tokens
-        rtg, ctg = (np.broadcast_to(x[:, :1], x.shape) for x in (rtg, ctg))
+    const = cdt_cfg.constant_targets
+    rtg, ctg = np.asarray(returns_to_go(data, const)), np.asarray(costs_to_go(data, const))
     return with_token_edges(cdt_cfg, rtg[valid], ctg[valid], weights[valid], steps[valid])
 
 
