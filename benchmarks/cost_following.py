@@ -33,7 +33,8 @@ from benchmarks.common import machine, markdown_table, write_json
 
 COST_TARGETS = (10.0, 20.0, 40.0, 80.0)
 RETURN_RATIOS = (0.5, 1.0)
-PRETRAIN_FIELDS = ("labels", "scale_actions", "standardize_obs")  # the rest are CDTConfig's
+# Variant fields that belong to PretrainConfig; the rest are CDTConfig's.
+PRETRAIN_FIELDS = ("labels", "scale_actions", "standardize_obs", "relabel_percent")
 
 
 def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
@@ -180,6 +181,8 @@ def main() -> None:
     ap.add_argument("--labels", choices=("episode", "policy", "auto"), default=None)
     ap.add_argument("--scale-actions", action="store_true")
     ap.add_argument("--standardize-obs", action="store_true")
+    ap.add_argument("--relabel-percent", type=float, default=None,
+                    help="Pareto-relabelled copies per episode (the cpu default: 0.2)")
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/cost_following.json"))
     args = ap.parse_args()
     variant = {k: v for k, v in (("token_bins", args.token_bins),
@@ -187,7 +190,8 @@ def main() -> None:
                                  ("constant_targets", args.constant_targets or None),
                                  ("labels", args.labels),
                                  ("scale_actions", args.scale_actions or None),
-                                 ("standardize_obs", args.standardize_obs or None))
+                                 ("standardize_obs", args.standardize_obs or None),
+                                 ("relabel_percent", args.relabel_percent))
                if v is not None}
     name = variant_name(variant)
     old = json.loads(args.out.read_text()) if args.out.exists() else {"results": []}
