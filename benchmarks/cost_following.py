@@ -2,8 +2,8 @@
 
     python -m benchmarks.cost_following [--tasks CarGoal1,CarCircle1,PointCircle1]
         [--seeds 0,1,2,3] [--episodes 20] [--token-bins N] [--token-rates]
-        [--labels episode|policy] [--scale-actions] [--standardize-obs]
-        [--out benchmarks/results/cost_following.json]
+        [--constant-targets] [--labels episode|policy|auto] [--scale-actions]
+        [--standardize-obs] [--relabel-percent P] [--c0 C] [--out PATH]
 
 For each source task: the default source data (`ensure_source_data`: the committed experts'
 snapshots, grid-filtered as DSRL does), a `cpu`-preset CDT pretrained with each seed at the
@@ -12,11 +12,12 @@ targets of half and all of the reference return R_ref. A (task, seed, return tar
 the mean cost rises with the cost target (Spearman >= 0.8) and, at target 20, lies below the
 data's median episode cost, or below 20 itself where the median is lower (PointCircle1's expert
 data have median 0: 60% of their episodes cost nothing, and no policy's mean goes below 0).
-`--token-bins`, `--token-rates`, `--labels`, `--scale-actions` and `--standardize-obs` pretrain a
-variant of the `cpu` preset
-(docs/CDT_FINDINGS.md sections 12-13); each variant's cells are kept apart. Results go to the JSON
-after every (task, seed), atomically, and a rerun skips what is there, so an interrupted run
-continues.
+The flags after `--episodes` pretrain a variant of the `cpu` preset (docs/CDT_FINDINGS.md
+sections 12-15); each variant's cells are kept apart. Results go to the JSON after every
+(task, seed), atomically, and a rerun skips what is there, so an interrupted run continues.
+The default JSON is `benchmarks/results/cost_following.json` at 20 episodes per target and
+`cost_following_<N>ep.json` at any other N, since one file holds one episode count (at 20 a
+cell's Spearman often hangs on means closer than their noise; section 15 used 50).
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ from benchmarks.common import machine, markdown_table, write_json
 COST_TARGETS = (10.0, 20.0, 40.0, 80.0)
 RETURN_RATIOS = (0.5, 1.0)
 # Variant fields that belong to PretrainConfig; the rest are CDTConfig's.
-PRETRAIN_FIELDS = ("labels", "scale_actions", "standardize_obs", "relabel_percent")
+PRETRAIN_FIELDS = ("labels", "scale_actions", "standardize_obs", "relabel_percent", "c0")
 
 
 def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
@@ -183,15 +184,21 @@ def main() -> None:
     ap.add_argument("--standardize-obs", action="store_true")
     ap.add_argument("--relabel-percent", type=float, default=None,
                     help="Pareto-relabelled copies per episode (the cpu default: 0.2)")
-    ap.add_argument("--out", type=Path, default=Path("benchmarks/results/cost_following.json"))
+    ap.add_argument("--c0", type=float, default=None,
+                    help="trajectory weights max(0, c0 - C) (the cpu default: OSRL's 70)")
+    ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
+    if args.out is None:
+        suffix = "" if args.episodes == 20 else f"_{args.episodes}ep"
+        args.out = Path(f"benchmarks/results/cost_following{suffix}.json")
     variant = {k: v for k, v in (("token_bins", args.token_bins),
                                  ("token_rates", args.token_rates or None),
                                  ("constant_targets", args.constant_targets or None),
                                  ("labels", args.labels),
                                  ("scale_actions", args.scale_actions or None),
                                  ("standardize_obs", args.standardize_obs or None),
-                                 ("relabel_percent", args.relabel_percent))
+                                 ("relabel_percent", args.relabel_percent),
+                                 ("c0", args.c0))
                if v is not None}
     name = variant_name(variant)
     old = json.loads(args.out.read_text()) if args.out.exists() else {"results": []}
