@@ -23,6 +23,7 @@ cell's Spearman often hangs on means closer than their noise; section 15 used 50
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -34,8 +35,6 @@ from benchmarks.common import machine, markdown_table, write_json
 
 COST_TARGETS = (10.0, 20.0, 40.0, 80.0)
 RETURN_RATIOS = (0.5, 1.0)
-# Variant fields that belong to PretrainConfig; the rest are CDTConfig's.
-PRETRAIN_FIELDS = ("labels", "scale_actions", "standardize_obs", "relabel_percent", "c0")
 
 
 def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
@@ -90,20 +89,23 @@ def variant_name(variant: dict) -> str:
 def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) -> dict:
     """Pretrain (or reuse) seed `seed`'s CDT on `task`'s default data and evaluate it.
 
-    `variant`: `CDTConfig` fields (`token_bins`, `token_rates`, `constant_targets`) and
-    `PretrainConfig` fields (`PRETRAIN_FIELDS`) that differ from the `cpu` preset."""
+    `variant`: `PretrainConfig` fields (e.g. `labels`, `relabel_percent`, `c0`) and `CDTConfig`
+    fields (the rest: `token_bins`, `token_rates`, `constant_targets`) that differ from the
+    `cpu` preset."""
     from safecdt_jax import paths
     from safecdt_jax.analysis.evaluate import evaluate_checkpoint
     from safecdt_jax.data import summarize_dataset
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pretrain.checkpoint import read_meta
+    from safecdt_jax.pretrain.config import PretrainConfig
     from safecdt_jax.pretrain.run import ensure_checkpoint
 
     start = time.perf_counter()
     data = ensure_source_data(task)
     median = summarize_dataset(data)["cost_median"]
     variant = dict(variant or {})
-    pre = {k: variant[k] for k in PRETRAIN_FIELDS if k in variant}
+    pre_fields = {f.name for f in dataclasses.fields(PretrainConfig)}
+    pre = {k: v for k, v in variant.items() if k in pre_fields}
     model = {k: v for k, v in variant.items() if k not in pre}
     name = variant_name(variant)
     out = paths.cache_root() / "checkpoints" / f"{task}-{name}-seed{seed}"
