@@ -138,7 +138,7 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
             "data_fingerprint": read_meta(ckpt)["dataset"]["fingerprint"],
             "reference_return": r_ref,
             "data": {k: attrs.get(k) for k in ("behaviour", "expert_collector_version",
-                                               "snapshot_sha256", "seed")},
+                                               "actions", "snapshot_sha256", "seed")},
             "episodes": episodes, "rows": rows, "seconds": time.perf_counter() - start}
 
 

@@ -225,6 +225,7 @@ def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
     (["expert", "--task", "Ant"], "error: ExpertConfig.task: unknown task 'Ant'"),
     (["expert", "--task", "CarGoal1", "--cost-limit", "x"], "error: bad cost limit 'x'"),
     (["collect", "--task", "CarGoal1", "--behaviour", "magic"], "error: unknown --behaviour"),
+    (["collect", "--task", "CarGoal1", "--actions", "raw"], "error: unknown --actions 'raw'"),
 ])
 def test_expert_cli_bad_input_is_one_line(args, message):
     from typer.testing import CliRunner
@@ -247,3 +248,27 @@ def test_recorded_car_action_executes_as_the_sampled_one():
     np.testing.assert_array_equal(a.obs, b.obs)  # the same torque, the same next state
     point = envs.make("PointCircle1")[0].robot
     np.testing.assert_array_equal(point.executed_action(sampled), sampled)  # state-dependent
+
+
+def test_sampled_and_executed_recordings_differ_only_by_the_car_clip():
+    from safecdt_jax.experts.collect import rollout_snapshots, snapshot_path
+
+    key, path = jax.random.PRNGKey(5), snapshot_path("CarCircle1")
+    runs = {a: rollout_snapshots(key, path, 1, horizon=6, actions=a)
+            for a in ("executed", "sampled")}
+    ex, sa = runs["executed"], runs["sampled"]
+    assert ex.attrs["actions"] == "executed" and sa.attrs["actions"] == "sampled"
+    # Same key, same samples: the env steps identically, only the record differs.
+    np.testing.assert_array_equal(ex.observations, sa.observations)
+    np.testing.assert_array_equal(ex.rewards, sa.rewards)
+    np.testing.assert_array_equal(ex.actions, np.clip(sa.actions, -0.02, 0.02))
+    assert np.abs(sa.actions).max() > 0.1 and np.abs(sa.actions).max() <= 1.0
+    with pytest.raises(ValueError, match="unknown action recording 'raw'"):
+        rollout_snapshots(key, path, 1, horizon=6, actions="raw")
+
+
+def test_default_action_recording_per_task():
+    from safecdt_jax.experts.collect import default_actions
+
+    assert default_actions("CarCircle1") == "sampled"
+    assert default_actions("CarGoal1") == "executed"

@@ -28,6 +28,10 @@ def collect_cmd(
              "them as DSRL does; 'scripted': the scripted drivers.")] = "expert",
     snapshots: Annotated[Path | None, typer.Option(
         help="Expert snapshot file (default: the committed one of TASK).")] = None,
+    actions: Annotated[str | None, typer.Option(
+        help="How expert actions are recorded: 'executed' (the Car's torques clipped to "
+             "+-0.02) or 'sampled' (the Gaussian sample clipped to [-1, 1], DSRL's); "
+             "default: the task's (sampled on CarCircle1, executed elsewhere).")] = None,
 ) -> None:
     """Collects behaviour episodes of a task into a DSRL-format HDF5 file."""
     from safecdt_jax import envs
@@ -42,6 +46,7 @@ def collect_cmd(
     from safecdt_jax import paths
     from safecdt_jax.data.collect import check_writable, collect, write_collected
     from safecdt_jax.experts.collect import (
+        ACTION_RECORDINGS,
         BEHAVIOURS,
         expert_dataset,
         planned_episodes,
@@ -53,6 +58,9 @@ def collect_cmd(
         if behaviour not in BEHAVIOURS:
             raise ValueError(f"unknown --behaviour {behaviour!r}; choose one of "
                              f"{', '.join(BEHAVIOURS)}")
+        if actions is not None and actions not in ACTION_RECORDINGS:
+            raise ValueError(f"unknown --actions {actions!r}; choose one of "
+                             f"{', '.join(ACTION_RECORDINGS)}")
         if behaviour == "expert" and snapshots is None:
             snapshot_path(task)
         path = check_writable(paths.dataset_path(task) if out is None else out)
@@ -68,7 +76,8 @@ def collect_cmd(
         total = planned_episodes(task, episodes) if snapshots is None else None
         with tqdm(total=total, desc=f"roll out {task} experts", unit="ep") as bar:
             data = expert_dataset(key, task, size=target_size(task, episodes),
-                                  snapshots=snapshots, progress=bar.update, seed=seed)
+                                  snapshots=snapshots, progress=bar.update, seed=seed,
+                                  actions=actions)
     collected = time.perf_counter()
     try:
         write_collected(path, data)

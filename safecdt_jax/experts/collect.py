@@ -42,6 +42,28 @@ from safecdt_jax.experts.ppo_lag import make_train
 SNAPSHOT_DIR = Path(__file__).parent / "snapshots"
 EXPERT_COLLECTOR_VERSION = 2  # 2: actions recorded as executed (the Car's clipped torques)
 
+# How an episode's actions are recorded: 'executed' (`Robot.executed_action`: the Car's wheel
+# torques clipped to +-0.02) or 'sampled' (the policy's Gaussian sample clipped to the action
+# box [-1, 1], DSRL's convention). Both step the env identically; they differ in what a
+# deterministic clone's mean action executes (docs/EXPERTS.md "Actions"). The Point's actions are
+# the same under both.
+ACTION_RECORDINGS = ("executed", "sampled")
+# Per task the recording whose clone reproduces the data's cost spread (docs/CDT_FINDINGS.md 16):
+# on CarCircle1 the clone of executed torques drives slowly at cost 0 whatever its target.
+DEFAULT_ACTIONS = {"CarCircle1": "sampled"}
+
+
+def default_actions(task: str) -> str:
+    """The action recording `expert_dataset` uses for `task` unless told otherwise."""
+    return DEFAULT_ACTIONS.get(task, "executed")
+
+
+def _check_actions(actions: str) -> str:
+    if actions not in ACTION_RECORDINGS:
+        raise ValueError(f"unknown action recording {actions!r}; choose one of "
+                         f"{', '.join(ACTION_RECORDINGS)}")
+    return actions
+
 
 class DsrlSize(NamedTuple):
     """A DSRL source data set's size: episodes kept and the cost cap of its grid filter."""
@@ -74,10 +96,11 @@ def snapshot_path(task: str) -> Path:
 
 
 @functools.cache
-def _rollout_fn(cfg: ExpertConfig, horizon: int) -> Callable:
+def _rollout_fn(cfg: ExpertConfig, horizon: int, actions: str = "executed") -> Callable:
     """jit(vmap(episode)): (keys [c], snapshots {leaves [c, ...]}) -> (obs, final obs, actions
-    as executed (`Robot.executed_action`: the Car's torques clipped to +-0.02), rewards, costs),
-    every episode `horizon` steps of the snapshot's stochastic policy."""
+    as `actions` says ('executed': `Robot.executed_action`, the Car's torques clipped to
+    +-0.02; 'sampled': the Gaussian sample clipped to [-1, 1]), rewards, costs), every episode
+    `horizon` steps of the snapshot's stochastic policy."""
     env, params = envs.make(cfg.task)
     policy = make_train(cfg).policy
 
@@ -85,24 +108,28 @@ def _rollout_fn(cfg: ExpertConfig, horizon: int) -> Callable:
         k_reset, k_steps = jax.random.split(key)
 
         def step(state, k):
-            # Recorded as executed: a Gaussian expert's sampled Car torques saturate (|a| > 0.02)
-            # almost always, so its *mean* command lives in the average of the clipped samples;
-            # an imitator's deterministic mean action reproduces it only from clipped targets.
-            action = env.robot.executed_action(jnp.clip(policy(snapshot, state.obs, k), -1, 1))
+            # A Gaussian expert's sampled Car torques saturate (|a| > 0.02) almost always:
+            # executed, their average is the expert's mean command; sampled, a clone's mean is
+            # the policy mean, which executes as a saturated (bang-bang) command.
+            action = jnp.clip(policy(snapshot, state.obs, k), -1, 1)
+            if actions == "executed":
+                action = env.robot.executed_action(action)
             nxt = env.step(state, action, params)
             return nxt, (state.obs, action, nxt.reward, nxt.cost)
 
-        final, (obs, actions, rewards, costs) = jax.lax.scan(
+        final, (obs, recorded, rewards, costs) = jax.lax.scan(
             step, env.reset(k_reset, params), jax.random.split(k_steps, horizon))
-        return obs, final.obs, actions, rewards, costs
+        return obs, final.obs, recorded, rewards, costs
 
     return jax.jit(jax.vmap(episode))
 
 
 def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int,
                       horizon: int | None = None, chunk: int = DEFAULT_CHUNK,
-                      progress: Callable[[int], None] | None = None) -> Dataset:
-    """`per_snapshot` stochastic episodes of every snapshot in file `path`, as a `Dataset`.
+                      progress: Callable[[int], None] | None = None,
+                      actions: str = "executed") -> Dataset:
+    """`per_snapshot` stochastic episodes of every snapshot in file `path`, as a `Dataset`,
+    actions recorded as `actions` says (`ACTION_RECORDINGS`; attrs 'actions').
 
     episode_info: 'snapshot' (index in the file), 'run', 'round'. attrs: task, env params,
     physics version, the expert config, the snapshot file's name and SHA-256, and per snapshot
@@ -118,6 +145,7 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
                          f"retrain the experts (safecdt-jax expert)")
     if per_snapshot < 1:
         raise ValueError(f"per_snapshot must be >= 1, got {per_snapshot}")
+    _check_actions(actions)
     cfg = ExpertConfig.from_json(meta["expert"])
     env = envs.make(cfg.task)[0]
     t = cfg.horizon if horizon is None else int(horizon)
@@ -125,7 +153,7 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
     which = np.repeat(np.arange(n_snap), per_snapshot)
     inputs = jax.tree.map(lambda x: x[which], snaps)
     keys = jax.random.split(key, which.size)
-    arrays = run_episodes(_rollout_fn(cfg, t), keys, inputs, env.observation_size,
+    arrays = run_episodes(_rollout_fn(cfg, t, actions), keys, inputs, env.observation_size,
                           env.action_size, chunk, progress)
     info = {"snapshot": which.astype(np.float32),
             "run": np.asarray([meta["snapshots"][i]["run"] for i in which], np.float32),
@@ -135,7 +163,8 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
              "expert_collector_version": EXPERT_COLLECTOR_VERSION, "expert": meta["expert"],
              "snapshot_file": Path(path).name,
              "snapshot_sha256": snapshot_sha256(path),
-             "snapshots": meta["snapshots"], "per_snapshot": per_snapshot, "horizon": t}
+             "snapshots": meta["snapshots"], "per_snapshot": per_snapshot, "horizon": t,
+             "actions": actions}
     return full_length_dataset(arrays, info, attrs)
 
 
@@ -191,9 +220,10 @@ def planned_episodes(task: str, episodes: int | None = None) -> int:
 def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
                    size: DsrlSize | None = None, snapshots: str | os.PathLike | None = None,
                    horizon: int | None = None, progress: Callable[[int], None] | None = None,
-                   seed: int | None = None) -> Dataset:
+                   seed: int | None = None, actions: str | None = None) -> Dataset:
     """The source data of `task` from its expert snapshots (default: the committed file),
-    grid-filtered to DSRL's size (default `DSRL_SIZES[task]`).
+    grid-filtered to DSRL's size (default `DSRL_SIZES[task]`), actions recorded as `actions`
+    says (default `default_actions(task)`).
 
     `per_snapshot` episodes per snapshot (default: enough for twice the target count). attrs
     add the filter's settings ('grid_filter': cbins, rbins, per-bin cap, max cost, episodes
@@ -207,7 +237,9 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
     per_snapshot = per_snapshot or _per_snapshot(
         len(load_snapshots(path)[1]["snapshots"]), size)
     k_roll, k_filter = jax.random.split(key)
-    raw = rollout_snapshots(k_roll, path, per_snapshot, horizon=horizon, progress=progress)
+    actions = _check_actions(default_actions(task) if actions is None else actions)
+    raw = rollout_snapshots(k_roll, path, per_snapshot, horizon=horizon, progress=progress,
+                            actions=actions)
     costs, returns = episode_costs(raw), episode_returns(raw)
     rng = np.random.default_rng(np.asarray(jax.random.bits(k_filter, (2,)), np.uint64))
     kept, per_bin = filter_to_size(rng, costs, returns, size)
@@ -222,9 +254,12 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
     return dataclasses.replace(data, attrs=Attrs(attrs))
 
 
-def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int) -> bool:
+def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int,
+               actions: str | None = None) -> bool:
     """Whether `path` holds expert data of `task` from the committed snapshots (same SHA-256),
-    this collector and physics version, `seed`, and the filter's target size."""
+    this collector and physics version, `seed`, the filter's target size and the action
+    recording (default `default_actions(task)`; files without the attribute are 'executed')."""
+    actions = default_actions(task) if actions is None else actions
     from safecdt_jax.data.collect import file_attrs
 
     attrs = file_attrs(path)
@@ -236,6 +271,7 @@ def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int) ->
             and attrs.get("expert_collector_version") == EXPERT_COLLECTOR_VERSION
             and attrs.get("physics_version") == envs.physics_version(task)
             and attrs.get("seed") == seed and grid.get("max_cost") == size.max_cost
+            and attrs.get("actions", "executed") == actions
             and grid.get("target") == size.episodes)
 
 
@@ -249,7 +285,8 @@ def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | Non
     collected there first unless the file is current.
 
     behaviour 'expert' (default): the task's committed expert snapshots, grid-filtered to
-    DSRL's size (`episodes` overrides its count); 'scripted': the scripted drivers of
+    DSRL's size (`episodes` overrides its count), actions recorded as
+    `default_actions(task)` says; 'scripted': the scripted drivers of
     `safecdt_jax.data.behaviour` (`episodes` of them, default 1000). ValueError for an unknown
     behaviour or task, or a task without snapshots.
     """
@@ -277,11 +314,14 @@ def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | Non
 
 
 __all__ = [
+    "ACTION_RECORDINGS",
     "BEHAVIOURS",
+    "DEFAULT_ACTIONS",
     "DSRL_SIZES",
     "EXPERT_COLLECTOR_VERSION",
     "SNAPSHOT_DIR",
     "DsrlSize",
+    "default_actions",
     "ensure_source_data",
     "expert_dataset",
     "filter_to_size",
