@@ -3,7 +3,7 @@
     python -m benchmarks.cost_following [--tasks CarGoal1,CarCircle1,PointCircle1]
         [--seeds 0,1,2,3] [--episodes 20] [--token-bins N] [--token-rates]
         [--constant-targets] [--labels episode|policy|auto] [--scale-actions]
-        [--standardize-obs] [--relabel-percent P] [--c0 C] [--out PATH]
+        [--standardize-obs] [--relabel-percent P] [--c0 C] [--actions sampled] [--out PATH]
 
 For each source task: the default source data (`ensure_source_data`: the committed experts'
 snapshots, grid-filtered as DSRL does), a `cpu`-preset CDT pretrained with each seed at the
@@ -13,7 +13,8 @@ the mean cost rises with the cost target (Spearman >= 0.8) and, at target 20, li
 data's median episode cost, or below 20 itself where the median is lower (PointCircle1's expert
 data have median 0: 60% of their episodes cost nothing, and no policy's mean goes below 0).
 The flags after `--episodes` pretrain a variant of the `cpu` preset (docs/CDT_FINDINGS.md
-sections 12-15); each variant's cells are kept apart. Results go to the JSON after every
+sections 12-15); `--actions sampled` uses source data that record the experts' sampled
+actions instead of the executed ones (section 16). Each variant's cells are kept apart. Results go to the JSON after every
 (task, seed), atomically, and a rerun skips what is there, so an interrupted run continues.
 The default JSON is `benchmarks/results/cost_following.json` at 20 episodes per target and
 `cost_following_<N>ep.json` at any other N, since one file holds one episode count (at 20 a
@@ -65,14 +66,14 @@ def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
     return {"slope": fit(y.mean(axis=1)), "low": float(low), "high": float(high)}
 
 
-def data_fingerprint(task: str) -> str:
-    """The fingerprint (`dataset_record`) of `task`'s default source data, collecting it if
-    needed: a cell measured on other data is stale."""
+def data_fingerprint(task: str, actions: str = "executed") -> str:
+    """The fingerprint (`dataset_record`) of `task`'s source data with this action recording,
+    collecting it if needed: a cell measured on other data is stale."""
     from safecdt_jax.data import load_dataset
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pretrain.run import dataset_record
 
-    path = ensure_source_data(task)
+    path = ensure_source_data(task, actions=actions)
     return dataset_record(path, load_dataset(path))["fingerprint"]
 
 
@@ -89,9 +90,9 @@ def variant_name(variant: dict) -> str:
 def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) -> dict:
     """Pretrain (or reuse) seed `seed`'s CDT on `task`'s default data and evaluate it.
 
-    `variant`: `PretrainConfig` fields (e.g. `labels`, `relabel_percent`, `c0`) and `CDTConfig`
-    fields (the rest: `token_bins`, `token_rates`, `constant_targets`) that differ from the
-    `cpu` preset."""
+    `variant`: `actions` (the source data's action recording), `PretrainConfig` fields (e.g.
+    `labels`, `relabel_percent`, `c0`) and `CDTConfig` fields (the rest: `token_bins`,
+    `token_rates`, `constant_targets`) that differ from the `cpu` preset."""
     from safecdt_jax import paths
     from safecdt_jax.analysis.evaluate import evaluate_checkpoint
     from safecdt_jax.data import summarize_dataset
@@ -101,12 +102,12 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
     from safecdt_jax.pretrain.run import ensure_checkpoint
 
     start = time.perf_counter()
-    data = ensure_source_data(task)
-    median = summarize_dataset(data)["cost_median"]
     variant = dict(variant or {})
+    data = ensure_source_data(task, actions=variant.get("actions", "executed"))
+    median = summarize_dataset(data)["cost_median"]
     pre_fields = {f.name for f in dataclasses.fields(PretrainConfig)}
     pre = {k: v for k, v in variant.items() if k in pre_fields}
-    model = {k: v for k, v in variant.items() if k not in pre}
+    model = {k: v for k, v in variant.items() if k not in pre and k != "actions"}
     name = variant_name(variant)
     out = paths.cache_root() / "checkpoints" / f"{task}-{name}-seed{seed}"
     ckpt = ensure_checkpoint(data, task, "cpu", seed=seed, out=out, overwrite=True,
@@ -188,6 +189,8 @@ def main() -> None:
                     help="Pareto-relabelled copies per episode (the cpu default: 0.2)")
     ap.add_argument("--c0", type=float, default=None,
                     help="trajectory weights max(0, c0 - C) (the cpu default: OSRL's 70)")
+    ap.add_argument("--actions", choices=("executed", "sampled"), default="executed",
+                    help="the source data's action recording (docs/EXPERTS.md)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     if args.out is None:
@@ -200,7 +203,8 @@ def main() -> None:
                                  ("scale_actions", args.scale_actions or None),
                                  ("standardize_obs", args.standardize_obs or None),
                                  ("relabel_percent", args.relabel_percent),
-                                 ("c0", args.c0))
+                                 ("c0", args.c0),
+                                 ("actions", None if args.actions == "executed" else args.actions))
                if v is not None}
     name = variant_name(variant)
     old = json.loads(args.out.read_text()) if args.out.exists() else {"results": []}
@@ -208,10 +212,14 @@ def main() -> None:
 
     # Cells of other data (an older collector, re-trained experts) are measured again.
     tasks = args.tasks.split(",")
-    current = {task: data_fingerprint(task) for task in tasks}
+    current = {(task, args.actions): data_fingerprint(task, args.actions) for task in tasks}
+
+    def data_key(r: dict) -> tuple[str, str]:
+        return r["task"], r.get("data", {}).get("actions") or "executed"
+
     # Cells without the slope are evaluated again (their cached checkpoints are reused).
     results = [r for r in old["results"] if r["episodes"] == args.episodes and (
-        current[r["task"]] == r.get("data_fingerprint") if r["task"] in current else
+        current[data_key(r)] == r.get("data_fingerprint") if data_key(r) in current else
         r.get("data", {}).get("expert_collector_version") == EXPERT_COLLECTOR_VERSION)
         and all("slope_per_doubling" in row for row in r["rows"])]
     done = {(r["task"], r["seed"], r.get("variant", "cpu")) for r in results}

@@ -266,9 +266,3 @@ def test_sampled_and_executed_recordings_differ_only_by_the_car_clip():
     with pytest.raises(ValueError, match="unknown action recording 'raw'"):
         rollout_snapshots(key, path, 1, horizon=6, actions="raw")
 
-
-def test_default_action_recording_per_task():
-    from safecdt_jax.experts.collect import default_actions
-
-    assert default_actions("CarCircle1") == "sampled"
-    assert default_actions("CarGoal1") == "executed"

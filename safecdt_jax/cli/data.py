@@ -28,10 +28,10 @@ def collect_cmd(
              "them as DSRL does; 'scripted': the scripted drivers.")] = "expert",
     snapshots: Annotated[Path | None, typer.Option(
         help="Expert snapshot file (default: the committed one of TASK).")] = None,
-    actions: Annotated[str | None, typer.Option(
+    actions: Annotated[str, typer.Option(
         help="How expert actions are recorded: 'executed' (the Car's torques clipped to "
-             "+-0.02) or 'sampled' (the Gaussian sample clipped to [-1, 1], DSRL's); "
-             "default: the task's (sampled on CarCircle1, executed elsewhere).")] = None,
+             "+-0.02, the default) or 'sampled' (the Gaussian sample clipped to [-1, 1], "
+             "DSRL's convention; docs/EXPERTS.md).")] = "executed",
 ) -> None:
     """Collects behaviour episodes of a task into a DSRL-format HDF5 file."""
     from safecdt_jax import envs
@@ -58,7 +58,7 @@ def collect_cmd(
         if behaviour not in BEHAVIOURS:
             raise ValueError(f"unknown --behaviour {behaviour!r}; choose one of "
                              f"{', '.join(BEHAVIOURS)}")
-        if actions is not None and actions not in ACTION_RECORDINGS:
+        if actions not in ACTION_RECORDINGS:
             raise ValueError(f"unknown --actions {actions!r}; choose one of "
                              f"{', '.join(ACTION_RECORDINGS)}")
         if behaviour == "expert" and snapshots is None:

@@ -48,14 +48,6 @@ EXPERT_COLLECTOR_VERSION = 2  # 2: actions recorded as executed (the Car's clipp
 # deterministic clone's mean action executes (docs/EXPERTS.md "Actions"). The Point's actions are
 # the same under both.
 ACTION_RECORDINGS = ("executed", "sampled")
-# Per task the recording whose clone reproduces the data's cost spread (docs/CDT_FINDINGS.md 16):
-# on CarCircle1 the clone of executed torques drives slowly at cost 0 whatever its target.
-DEFAULT_ACTIONS = {"CarCircle1": "sampled"}
-
-
-def default_actions(task: str) -> str:
-    """The action recording `expert_dataset` uses for `task` unless told otherwise."""
-    return DEFAULT_ACTIONS.get(task, "executed")
 
 
 def _check_actions(actions: str) -> str:
@@ -220,10 +212,10 @@ def planned_episodes(task: str, episodes: int | None = None) -> int:
 def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
                    size: DsrlSize | None = None, snapshots: str | os.PathLike | None = None,
                    horizon: int | None = None, progress: Callable[[int], None] | None = None,
-                   seed: int | None = None, actions: str | None = None) -> Dataset:
+                   seed: int | None = None, actions: str = "executed") -> Dataset:
     """The source data of `task` from its expert snapshots (default: the committed file),
     grid-filtered to DSRL's size (default `DSRL_SIZES[task]`), actions recorded as `actions`
-    says (default `default_actions(task)`).
+    says (`ACTION_RECORDINGS`).
 
     `per_snapshot` episodes per snapshot (default: enough for twice the target count). attrs
     add the filter's settings ('grid_filter': cbins, rbins, per-bin cap, max cost, episodes
@@ -237,7 +229,7 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
     per_snapshot = per_snapshot or _per_snapshot(
         len(load_snapshots(path)[1]["snapshots"]), size)
     k_roll, k_filter = jax.random.split(key)
-    actions = _check_actions(default_actions(task) if actions is None else actions)
+    _check_actions(actions)
     raw = rollout_snapshots(k_roll, path, per_snapshot, horizon=horizon, progress=progress,
                             actions=actions)
     costs, returns = episode_costs(raw), episode_returns(raw)
@@ -255,11 +247,10 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
 
 
 def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int,
-               actions: str | None = None) -> bool:
+               actions: str = "executed") -> bool:
     """Whether `path` holds expert data of `task` from the committed snapshots (same SHA-256),
     this collector and physics version, `seed`, the filter's target size and the action
-    recording (default `default_actions(task)`; files without the attribute are 'executed')."""
-    actions = default_actions(task) if actions is None else actions
+    recording (files without the attribute are 'executed')."""
     from safecdt_jax.data.collect import file_attrs
 
     attrs = file_attrs(path)
@@ -280,13 +271,15 @@ BEHAVIOURS = ("expert", "scripted")
 
 def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | None = None,
                        seed: int = 0, path: str | os.PathLike | None = None,
-                       progress: Callable[[int], None] | None = None) -> Path:
-    """The path of a current source data set of `task` (default `paths.dataset_path(task)`),
-    collected there first unless the file is current.
+                       progress: Callable[[int], None] | None = None,
+                       actions: str = "executed") -> Path:
+    """The path of a current source data set of `task` (default `paths.dataset_path(task)`,
+    `TASK-sampled.hdf5` beside it for sampled actions), collected there first unless the file
+    is current.
 
     behaviour 'expert' (default): the task's committed expert snapshots, grid-filtered to
-    DSRL's size (`episodes` overrides its count), actions recorded as
-    `default_actions(task)` says; 'scripted': the scripted drivers of
+    DSRL's size (`episodes` overrides its count), actions recorded as `actions` says
+    (`ACTION_RECORDINGS`); 'scripted': the scripted drivers of
     `safecdt_jax.data.behaviour` (`episodes` of them, default 1000). ValueError for an unknown
     behaviour or task, or a task without snapshots.
     """
@@ -303,25 +296,28 @@ def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | Non
     if behaviour == "scripted":
         return ensure_dataset(task, episodes or DEFAULT_EPISODES, seed, path, progress)
     snapshot_path(task)  # validates the task before touching the disk
+    _check_actions(actions)
     size = target_size(task, episodes)
-    path = Path(paths.dataset_path(task) if path is None else path).expanduser()
-    if is_current(path, task, size, seed):
+    if path is None:
+        path = paths.dataset_path(task)
+        if actions != "executed":
+            path = path.with_name(f"{task}-{actions}.hdf5")
+    path = Path(path).expanduser()
+    if is_current(path, task, size, seed, actions):
         return path
     path = check_writable(path)
     data = expert_dataset(jax.random.PRNGKey(seed), task, size=size, progress=progress,
-                          seed=seed)
+                          seed=seed, actions=actions)
     return write_collected(path, data)
 
 
 __all__ = [
     "ACTION_RECORDINGS",
     "BEHAVIOURS",
-    "DEFAULT_ACTIONS",
     "DSRL_SIZES",
     "EXPERT_COLLECTOR_VERSION",
     "SNAPSHOT_DIR",
     "DsrlSize",
-    "default_actions",
     "ensure_source_data",
     "expert_dataset",
     "filter_to_size",
