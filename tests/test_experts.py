@@ -208,11 +208,13 @@ def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
     assert "limit 5, seed 0" in res.output and (tmp_path / "run" / "curves.png").exists()
     out = tmp_path / "data.hdf5"
     res = CliRunner().invoke(app, ["collect", "--task", "PointCircle1", "--snapshots",
-                                   str(snaps), "--episodes", "6", "--out", str(out)])
+                                   str(snaps), "--episodes", "6", "--out", str(out),
+                                   "--actions", "sampled"])
     assert res.exit_code == 0, res.output
     data = load_dataset(out)
     assert 1 <= data.n_episodes <= 6 and data.horizon == 20
     assert data.attrs["behaviour"] == "expert" and data.attrs["task"] == "PointCircle1"
+    assert data.attrs["actions"] == "sampled"
     assert json.loads(data.attrs["grid_filter"])["target"] == 6  # nested attrs: JSON strings
     assert data.attrs["seed"] == 0  # so that `run` reuses a file `collect` wrote
     snapshots = json.loads(data.attrs["snapshots"])
@@ -265,4 +267,12 @@ def test_sampled_and_executed_recordings_differ_only_by_the_car_clip():
     assert np.abs(sa.actions).max() > 0.1 and np.abs(sa.actions).max() <= 1.0
     with pytest.raises(ValueError, match="unknown action recording 'raw'"):
         rollout_snapshots(key, path, 1, horizon=6, actions="raw")
+
+
+def test_source_data_with_an_unknown_action_recording_is_a_clear_error(tmp_path):
+    from safecdt_jax.experts.collect import ensure_source_data
+
+    with pytest.raises(ValueError, match="unknown action recording 'clipped'"):
+        ensure_source_data("CarCircle1", path=tmp_path / "d.hdf5", actions="clipped")
+    assert not (tmp_path / "d.hdf5").exists()
 
