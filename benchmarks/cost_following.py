@@ -15,7 +15,8 @@ data have median 0: 60% of their episodes cost nothing, and no policy's mean goe
 The flags after `--episodes` pretrain a variant of the `cpu` preset (docs/CDT_FINDINGS.md
 sections 12-15); `--actions sampled` uses source data that record the experts' sampled
 actions instead of the executed ones (section 16). Each variant's cells are kept apart.
-Results go to the JSON after every (task, seed), atomically, and a rerun skips what is there, so an interrupted run continues.
+Results go to the JSON after every (task, seed), atomically, and a rerun skips what is
+there, so an interrupted run continues.
 The default JSON is `benchmarks/results/cost_following.json` at 20 episodes per target and
 `cost_following_<N>ep.json` at any other N, since one file holds one episode count (at 20 a
 cell's Spearman often hangs on means closer than their noise; section 15 used 50).
