@@ -50,11 +50,10 @@ EXPERT_COLLECTOR_VERSION = 2  # 2: actions recorded as executed (the Car's clipp
 ACTION_RECORDINGS = ("executed", "sampled")
 
 
-def _check_actions(actions: str) -> str:
+def _check_actions(actions: str) -> None:
     if actions not in ACTION_RECORDINGS:
         raise ValueError(f"unknown action recording {actions!r}; choose one of "
                          f"{', '.join(ACTION_RECORDINGS)}")
-    return actions
 
 
 class DsrlSize(NamedTuple):
@@ -229,7 +228,6 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
     per_snapshot = per_snapshot or _per_snapshot(
         len(load_snapshots(path)[1]["snapshots"]), size)
     k_roll, k_filter = jax.random.split(key)
-    _check_actions(actions)
     raw = rollout_snapshots(k_roll, path, per_snapshot, horizon=horizon, progress=progress,
                             actions=actions)
     costs, returns = episode_costs(raw), episode_returns(raw)
