@@ -176,6 +176,8 @@ def table(results: list[dict]) -> str:
 
 def main() -> None:
     """Runs the missing (task, seed) cells, rewriting the JSON after each; prints the table."""
+    from safecdt_jax.experts.collect import ACTION_RECORDINGS, EXPERT_COLLECTOR_VERSION
+
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--tasks", default="CarGoal1,CarCircle1,PointCircle1")
     ap.add_argument("--seeds", default="0,1,2,3")
@@ -190,7 +192,7 @@ def main() -> None:
                     help="Pareto-relabelled copies per episode (the cpu default: 0.2)")
     ap.add_argument("--c0", type=float, default=None,
                     help="trajectory weights max(0, c0 - C) (the cpu default: OSRL's 70)")
-    ap.add_argument("--actions", choices=("executed", "sampled"), default="executed",
+    ap.add_argument("--actions", choices=ACTION_RECORDINGS, default="executed",
                     help="the source data's action recording (docs/EXPERTS.md)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
@@ -209,7 +211,6 @@ def main() -> None:
                if v is not None}
     name = variant_name(variant)
     old = json.loads(args.out.read_text()) if args.out.exists() else {"results": []}
-    from safecdt_jax.experts.collect import EXPERT_COLLECTOR_VERSION
 
     # Cells of other data (an older collector, re-trained experts) are measured again.
     tasks = args.tasks.split(",")

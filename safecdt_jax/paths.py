@@ -18,9 +18,11 @@ def cache_root() -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "safecdt-jax"
 
 
-def dataset_path(task: str) -> Path:
-    """Default location of the collected source dataset for `task` (a DSRL-format HDF5 file)."""
-    return cache_root() / "datasets" / f"{task}.hdf5"
+def dataset_path(task: str, actions: str = "executed") -> Path:
+    """Default location of the collected source dataset for `task` (a DSRL-format HDF5 file):
+    `TASK.hdf5`, or `TASK-{actions}.hdf5` for expert data of another action recording."""
+    suffix = "" if actions == "executed" else f"-{actions}"
+    return cache_root() / "datasets" / f"{task}{suffix}.hdf5"
 
 
 def checkpoint_dir(task: str, preset: str) -> Path:

@@ -276,3 +276,11 @@ def test_source_data_with_an_unknown_action_recording_is_a_clear_error(tmp_path)
         ensure_source_data("CarCircle1", path=tmp_path / "d.hdf5", actions="clipped")
     assert not (tmp_path / "d.hdf5").exists()
 
+
+def test_sampled_data_have_their_own_default_file(monkeypatch, tmp_path):
+    from safecdt_jax import paths
+
+    monkeypatch.setenv(paths.CACHE_ENV, str(tmp_path))
+    assert paths.dataset_path("CarCircle1") == tmp_path / "datasets" / "CarCircle1.hdf5"
+    assert paths.dataset_path("CarCircle1", "sampled").name == "CarCircle1-sampled.hdf5"
+

@@ -21,7 +21,8 @@ def collect_cmd(
     episodes: Annotated[int | None, typer.Option(
         help="Episodes kept (default: DSRL's count for experts, 1000 scripted).")] = None,
     out: Annotated[Path | None, typer.Option(
-        help="Output HDF5 file (default: the cache's datasets/TASK.hdf5).")] = None,
+        help="Output HDF5 file (default: the cache's datasets/TASK.hdf5, TASK-sampled.hdf5 "
+             "with --actions sampled).")] = None,
     seed: Annotated[int, typer.Option(help="PRNG seed (layouts, action noise, filter).")] = 0,
     behaviour: Annotated[str, typer.Option(
         help="'expert': roll out the task's committed PPO-Lagrangian snapshots and grid-filter "
@@ -63,7 +64,7 @@ def collect_cmd(
                              f"{', '.join(ACTION_RECORDINGS)}")
         if behaviour == "expert" and snapshots is None:
             snapshot_path(task)
-        path = check_writable(paths.dataset_path(task) if out is None else out)
+        path = check_writable(paths.dataset_path(task, actions) if out is None else out)
     except ValueError as e:
         _fail(str(e))
     start = time.perf_counter()

@@ -271,9 +271,8 @@ def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | Non
                        seed: int = 0, path: str | os.PathLike | None = None,
                        progress: Callable[[int], None] | None = None,
                        actions: str = "executed") -> Path:
-    """The path of a current source data set of `task` (default `paths.dataset_path(task)`,
-    `TASK-sampled.hdf5` beside it for sampled actions), collected there first unless the file
-    is current.
+    """The path of a current source data set of `task` (default `paths.dataset_path(task,
+    actions)`), collected there first unless the file is current.
 
     behaviour 'expert' (default): the task's committed expert snapshots, grid-filtered to
     DSRL's size (`episodes` overrides its count), actions recorded as `actions` says
@@ -296,11 +295,7 @@ def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | Non
     snapshot_path(task)  # validates the task before touching the disk
     _check_actions(actions)
     size = target_size(task, episodes)
-    if path is None:
-        path = paths.dataset_path(task)
-        if actions != "executed":
-            path = path.with_name(f"{task}-{actions}.hdf5")
-    path = Path(path).expanduser()
+    path = Path(paths.dataset_path(task, actions) if path is None else path).expanduser()
     if is_current(path, task, size, seed, actions):
         return path
     path = check_writable(path)
