@@ -30,3 +30,14 @@ def tiny_run(tmp_path_factory):
     cfg = default_pretrain("tiny", steps=2, chunk=2)
     ckpt = pretrain(data, tmp / "ckpt", preset="tiny", config=cfg, progress=False).path
     return data, ckpt, tmp
+
+
+@pytest.fixture(autouse=True)
+def _programs_not_stored():
+    """Every test starts with traced programs not stored on disk: a CLI test turns storing on
+    for its process (`enable_persistent_cache`), which must not carry into the next test."""
+    from safecdt_jax import programs
+
+    programs.enable(None)
+    yield
+    programs.enable(None)

@@ -17,13 +17,16 @@ def _root() -> None:
 
 def enable_persistent_cache() -> None:
     """Keep compiled XLA programs across runs in `$SAFECDT_CACHE/xla` (or
-    `$JAX_COMPILATION_CACHE_DIR`): a second deployment of the same shapes loads its programs
-    instead of compiling them (CarGoal2, 15 x 50: 13.9 s of XLA compile -> 0.6 s,
-    `benchmarks/compile_time.py`); a resumed paper suite skips its compiles."""
+    `$JAX_COMPILATION_CACHE_DIR`), and the deployment's traced program in
+    `$SAFECDT_CACHE/programs`: a second deployment of the same shapes loads both instead of
+    tracing and compiling (`benchmarks/compile_time.py`); a resumed paper suite skips its
+    compiles."""
     import jax
 
+    from safecdt_jax import programs
     from safecdt_jax.paths import cache_root
 
+    programs.enable(cache_root() / "programs")
     if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
         jax.config.update("jax_compilation_cache_dir", str(cache_root() / "xla"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from safecdt_jax import programs
 from safecdt_jax.deploy.config import DeployConfig
 from safecdt_jax.deploy.loop import (
     Carry,
@@ -111,6 +112,12 @@ def sweep(
     finetune = bool(np.any(np.asarray(jax.device_get(specs.variant.lora))))
     init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched, finetune)
     carry = init_all(keys, lora, specs)
+    # With `programs.enable`d storage a warm start calls the stored trace of this program
+    # instead of tracing the whole deployment again (`safecdt_jax/programs.py`).
+    run_all = programs.cached(
+        run_all, (carry, jnp.arange(chunk, dtype=jnp.int32), base_params, env_params, specs),
+        name="deploy.sweep.episodes", static=(env, model_cfg, cfg, env_params_batched, finetune),
+        donate=(0,))
     parts = []
     for start in range(0, cfg.episodes, chunk):
         index = jnp.arange(start, start + chunk, dtype=jnp.int32)
