@@ -34,7 +34,7 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
 from benchmarks.deploy_throughput import setup
 from safecdt_jax import programs
 from safecdt_jax.deploy import init_adapters, seed_keys, stack_specs
-from safecdt_jax.deploy.sweep import _compiled
+from safecdt_jax.deploy.sweep import _compiled, stored_episodes
 programs.enable({programs!r})
 env, params, model_cfg, base, cfg, spec = setup({task!r}, {preset!r}, {episodes})
 keys, specs = seed_keys(0, {seeds}), stack_specs([spec])
@@ -48,8 +48,8 @@ index = np.arange(1, dtype=np.int32)
 args = (carry, index, base, params, specs)
 t = time.perf_counter()
 # What `deploy.sweep` does: with storing on, export (cold) or load (warm) the traced program.
-run = programs.cached(run_all, args, name="deploy.sweep.episodes",
-                      static=(env, model_cfg, cfg, False, True), donate=(0,))
+run = stored_episodes(run_all, args, env=env, model_cfg=model_cfg, cfg=cfg,
+                      env_params_batched=False, finetune=True)
 lowered = run.trace(*args).lower()
 trace_s = time.perf_counter() - t
 t = time.perf_counter()

@@ -9,12 +9,16 @@ load the compiled code. `cached(jitted, args, static=...)` exports the traced pr
 calls the stored program instead of tracing the Python function again; the same XLA cache then
 serves its compile.
 
-The key covers everything the traced program depends on: `static` (the caller's description of
-the static arguments, e.g. the reprs of the env and configs), the arguments' pytree structure,
-shapes and dtypes, the backend and device count, the JAX, jaxlib, MuJoCo and Flax versions, and
-a digest of this package's source files, so any edit to the code traces afresh. A stored
-program runs the same StableHLO the tracing would give, so results are the same bits (tested
-in tests/test_programs.py).
+The key covers what the traced program depends on: `static` (the caller's description of the
+static arguments, e.g. the reprs of the env and configs), the arguments' pytree structure,
+shapes, dtypes and weak types, the backend and device count, the versions of jax, jaxlib,
+mujoco, mujoco-mjx, flax, optax and numpy, every JAX option except those about caches, logs
+and tracebacks, and a digest of this package's source files, so any edit to the code traces
+afresh. Code outside the package that the program calls (a user's own module) is not in the
+key. A stored program runs the same StableHLO the tracing would give, so results are the same
+bits (tested in tests/test_programs.py). Whatever cannot be stored (a program with weakly typed
+outputs, whose weak types serialisation drops; a failed export or write; `jax_disable_jit` or
+NaN checking on) runs traced, as without storing. Files are pickles: keep the folder private.
 """
 
 from __future__ import annotations
@@ -32,7 +36,14 @@ from typing import Any
 import jax
 import numpy as np
 
-_FORMAT = 1
+_FORMAT = 2
+_PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "flax", "optax", "numpy")
+# JAX options that cannot change a trace (caches, logs, tracebacks, dumps, profiling) stay out
+# of the key, so a test's cache settings and a CLI run's share stored programs; all others go in.
+_IGNORED_OPTIONS = ("cache", "log", "traceback", "explain", "persistent", "profil", "dump",
+                    "topology")
+# Options under which a stored program would skip what the user asked for.
+_TRACE_ONLY_OPTIONS = ("jax_disable_jit", "jax_debug_nans", "jax_debug_infs")
 _folder: Path | None = None
 _callers: dict[tuple[Path, tuple[int, ...]], Callable] = {}
 
@@ -59,13 +70,14 @@ def source_digest() -> str:
     return digest.hexdigest()
 
 
-def _versions() -> str:
-    import flax
-    import jaxlib
-    import mujoco
+def _environment() -> str:
+    """Library versions and the JAX options a trace depends on, as one string."""
+    from importlib.metadata import version
 
-    return f"jax {jax.__version__} jaxlib {jaxlib.__version__} mujoco {mujoco.__version__} " \
-           f"flax {flax.__version__} x64 {jax.config.jax_enable_x64}"
+    options = sorted((name, repr(getattr(jax.config, name, value)))
+                     for name, value in jax.config.values.items()
+                     if not any(word in name for word in _IGNORED_OPTIONS))
+    return f"{[(p, version(p)) for p in _PACKAGES]} {options}"
 
 
 def _leaf_spec(leaf) -> jax.ShapeDtypeStruct:
@@ -84,7 +96,7 @@ def program_key(name: str, static: str, args: tuple) -> str:
     shapes = ";".join(f"{s.shape}{s.dtype}{'w' if s.weak_type else ''}"
                       for s in map(_leaf_spec, leaves))
     devices = f"{jax.default_backend()} x{jax.device_count()}"
-    text = "\n".join([str(_FORMAT), name, static, str(tree), shapes, devices, _versions(),
+    text = "\n".join([str(_FORMAT), name, static, str(tree), shapes, devices, _environment(),
                       source_digest()])
     return hashlib.sha256(text.encode()).hexdigest()
 
@@ -130,14 +142,18 @@ def _caller(path: Path, donate: tuple[int, ...]) -> Callable | None:
         if stored.get("format") != _FORMAT:
             return None
         exported = jax.export.deserialize(stored["exported"])
-        out_tree = stored["out_tree"]
+        in_tree, out_tree = stored["in_tree"], stored["out_tree"]
     except Exception as err:  # a torn or foreign file: trace afresh and overwrite it
         warnings.warn(f"stored program {path} unreadable ({err}); tracing again", stacklevel=3)
         return None
 
     def call(*args):
-        return jax.tree.unflatten(out_tree, exported.call(*jax.tree.leaves(args)))
+        leaves, tree = jax.tree.flatten(args)
+        if tree != in_tree:  # static, so checked once per trace of this wrapper
+            raise TypeError(f"stored program {path.name}: arguments {tree}, stored {in_tree}")
+        return jax.tree.unflatten(out_tree, exported.call(*leaves))
 
+    # The donation happens here: the exported module's own aliasing does not survive `call`.
     _callers[path, donate] = jax.jit(call, donate_argnums=donate)
     return _callers[path, donate]
 
@@ -153,14 +169,22 @@ def cached(jitted: Callable, args: tuple, *, name: str, static: Hashable,
     the positional arguments `jitted` donates. Several devices keep `jitted` (the stored
     program holds no shardings).
     """
-    if _folder is None or jax.device_count() > 1:
+    if (_folder is None or jax.device_count() > 1
+            or any(getattr(jax.config, name) for name in _TRACE_ONLY_OPTIONS)):
         return jitted
     path = _folder / f"{program_key(name, repr(static), args)}.bin"
     if path.exists():
         caller = _caller(path, donate)
         if caller is not None:
             return caller
-    exported, out_tree = _export(jitted, args, donate)
-    _write_atomic(path, pickle.dumps({"format": _FORMAT, "exported": exported.serialize(),
-                                      "out_tree": out_tree}))
+    try:
+        exported, out_tree = _export(jitted, args, donate)
+        if any(aval.weak_type for aval in exported.out_avals):
+            return jitted  # a stored program would return these strongly typed
+        _write_atomic(path, pickle.dumps({
+            "format": _FORMAT, "exported": exported.serialize(),
+            "in_tree": jax.tree.structure(args), "out_tree": out_tree}))
+    except Exception as err:  # e.g. a read-only cache or an op jax.export cannot serialise
+        warnings.warn(f"could not store program {name} ({err}); tracing it", stacklevel=2)
+        return jitted
     return _caller(path, donate) or jitted

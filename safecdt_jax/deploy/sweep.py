@@ -55,6 +55,16 @@ def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batch
     return jax.jit(init_all), jax.jit(run_all, donate_argnums=0)
 
 
+def stored_episodes(run_all: Callable, args: tuple, *, env: SafetyEnv, model_cfg: CDTConfig,
+                    cfg: DeployConfig, env_params_batched: bool, finetune: bool) -> Callable:
+    """The episodes program `run_all` of `_compiled(env, model_cfg, cfg, env_params_batched,
+    finetune)` for arguments shaped like `args`, or, with storing on (`programs.enable`), its
+    stored trace: a warm start then skips tracing the whole deployment (same bits)."""
+    return programs.cached(run_all, args, name="deploy.sweep.episodes",
+                           static=(env, model_cfg, cfg, env_params_batched, finetune),
+                           donate=(0,))
+
+
 def sweep(
     keys: jax.Array,
     base_params: Params,
@@ -112,12 +122,10 @@ def sweep(
     finetune = bool(np.any(np.asarray(jax.device_get(specs.variant.lora))))
     init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched, finetune)
     carry = init_all(keys, lora, specs)
-    # With `programs.enable`d storage a warm start calls the stored trace of this program
-    # instead of tracing the whole deployment again (`safecdt_jax/programs.py`).
-    run_all = programs.cached(
+    run_all = stored_episodes(
         run_all, (carry, jnp.arange(chunk, dtype=jnp.int32), base_params, env_params, specs),
-        name="deploy.sweep.episodes", static=(env, model_cfg, cfg, env_params_batched, finetune),
-        donate=(0,))
+        env=env, model_cfg=model_cfg, cfg=cfg, env_params_batched=env_params_batched,
+        finetune=finetune)
     parts = []
     for start in range(0, cfg.episodes, chunk):
         index = jnp.arange(start, start + chunk, dtype=jnp.int32)
