@@ -3,7 +3,8 @@
     python -m benchmarks.cost_following [--tasks CarGoal1,CarCircle1,PointCircle1]
         [--seeds 0,1,2,3] [--episodes 20] [--token-bins N] [--token-rates]
         [--constant-targets] [--labels episode|policy|auto] [--scale-actions]
-        [--standardize-obs] [--relabel-percent P] [--c0 C] [--actions sampled] [--out PATH]
+        [--standardize-obs] [--relabel-percent P] [--c0 C] [--actions sampled]
+        [--stochastic-actions] [--out PATH]
 
 For each source task: the default source data (`ensure_source_data`: the committed experts'
 snapshots, grid-filtered as DSRL does), a `cpu`-preset CDT pretrained with each seed at the
@@ -14,7 +15,9 @@ data's median episode cost, or below 20 itself where the median is lower (PointC
 data have median 0: 60% of their episodes cost nothing, and no policy's mean goes below 0).
 The flags after `--episodes` pretrain a variant of the `cpu` preset (docs/CDT_FINDINGS.md
 sections 12-15); `--actions sampled` uses source data that record the experts' sampled
-actions instead of the executed ones (section 16). Each variant's cells are kept apart.
+actions instead of the executed ones (section 16); `--stochastic-actions` evaluates the same
+checkpoints acting with samples of the CDT's Gaussian head (section 17). Each variant's cells
+are kept apart.
 Results go to the JSON after every (task, seed), atomically, and a rerun skips what is
 there, so an interrupted run continues.
 The default JSON is `benchmarks/results/cost_following.json` at 20 episodes per target and
@@ -88,12 +91,22 @@ def variant_name(variant: dict) -> str:
     return "+".join(["cpu", *(f"{k}={v}" for k, v in sorted(variant.items()))])
 
 
+EVALUATION_ONLY = ("stochastic_actions",)
+
+
+def trained_variant(variant: dict) -> dict:
+    """The part of a variant that pretraining sees: without the evaluation-only choices, so a
+    variant that only acts otherwise reuses the same checkpoint."""
+    return {k: v for k, v in variant.items() if k not in EVALUATION_ONLY}
+
+
 def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) -> dict:
     """Pretrain (or reuse) seed `seed`'s CDT on `task`'s default data and evaluate it.
 
     `variant`: `actions` (the source data's action recording), `PretrainConfig` fields (e.g.
     `labels`, `relabel_percent`, `c0`) and `CDTConfig` fields (the rest: `token_bins`,
-    `token_rates`, `constant_targets`) that differ from the `cpu` preset."""
+    `token_rates`, `constant_targets`) that differ from the `cpu` preset. `stochastic_actions`
+    is an evaluation choice: it shares the checkpoint of the variant without it."""
     from safecdt_jax import paths
     from safecdt_jax.analysis.evaluate import evaluate_checkpoint
     from safecdt_jax.data import summarize_dataset
@@ -108,15 +121,17 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
     median = summarize_dataset(data)["cost_median"]
     pre_fields = {f.name for f in dataclasses.fields(PretrainConfig)}
     pre = {k: v for k, v in variant.items() if k in pre_fields}
-    model = {k: v for k, v in variant.items() if k not in pre and k != "actions"}
+    model = {k: v for k, v in trained_variant(variant).items() if k not in pre and k != "actions"}
     name = variant_name(variant)
-    out = paths.cache_root() / "checkpoints" / f"{task}-{name}-seed{seed}"
+    trained = variant_name(trained_variant(variant))
+    out = paths.cache_root() / "checkpoints" / f"{task}-{trained}-seed{seed}"
     ckpt = ensure_checkpoint(data, task, "cpu", seed=seed, out=out, overwrite=True,
                              progress=False, model_overrides=model, pretrain_overrides=pre)
     r_ref = float(read_meta(ckpt)["dataset"]["reference_return"])
     targets = [(ratio * r_ref, c) for ratio in RETURN_RATIOS for c in COST_TARGETS]
     summary = evaluate_checkpoint(ckpt, task, targets, episodes, seed=1000 + seed,
-                                  data_median=median)
+                                  data_median=median,
+                                  stochastic_actions=variant.get("stochastic_actions"))
     rows = []
     for ratio, follow in zip(RETURN_RATIOS, summary["cost_following"], strict=True):
         index = [i for i, r in enumerate(summary["rows"])
@@ -194,6 +209,8 @@ def main() -> None:
                     help="trajectory weights max(0, c0 - C) (the cpu default: OSRL's 70)")
     ap.add_argument("--actions", choices=ACTION_RECORDINGS, default="executed",
                     help="the source data's action recording (docs/EXPERTS.md)")
+    ap.add_argument("--stochastic-actions", action="store_true",
+                    help="act with samples of the CDT's Gaussian head, not its mean")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     if args.out is None:
@@ -207,6 +224,7 @@ def main() -> None:
                                  ("standardize_obs", args.standardize_obs or None),
                                  ("relabel_percent", args.relabel_percent),
                                  ("c0", args.c0),
+                                 ("stochastic_actions", args.stochastic_actions or None),
                                  ("actions", None if args.actions == "executed" else args.actions))
                if v is not None}
     name = variant_name(variant)

@@ -86,12 +86,32 @@ def test_cli_evaluate_prints_and_writes_the_summary(tiny_run):
     np.testing.assert_array_equal(np.asarray(summary["costs"]), res["costs"])
     np.testing.assert_array_equal(np.asarray(summary["returns"]), res["returns"])
     assert not list(tmp.glob(".tmp-*"))  # written atomically: no temporary left behind
+    assert summary["stochastic_actions"] is False  # the checkpoint's own setting: the mean
+
+
+def test_cli_evaluate_act_sample_draws_from_the_policy(tiny_run):
+    _, ckpt, tmp = tiny_run
+    args = ["evaluate", "--ckpt", str(ckpt), "--task", TASK, "--targets", "5:0,5:10",
+            "--episodes", "2", "--horizon", "12", "--seed", "3"]
+    outs = {}
+    for act in ("mean", "sample"):
+        out = tmp / f"eval-{act}.json"
+        result = CliRunner().invoke(app, [*args, "--act", act, "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        outs[act] = json.loads(out.read_text())
+    assert "sampled actions" in result.output
+    assert outs["sample"]["stochastic_actions"] and not outs["mean"]["stochastic_actions"]
+    res = evaluate_policy(ckpt, TASK, [(5.0, 0.0), (5.0, 10.0)], 2, seed=3, horizon=12,
+                          stochastic_actions=True)
+    np.testing.assert_array_equal(np.asarray(outs["sample"]["returns"]), res["returns"])
+    assert not np.array_equal(np.asarray(outs["mean"]["returns"]), res["returns"])
 
 
 @pytest.mark.parametrize("flag,value,message", [
     ("--targets", "5:-1", "must be >= 0"),
     ("--data", "missing.hdf5", "file not found"),
     ("--task", "CarGoal1", "does not fit task CarGoal1"),
+    ("--act", "greedy", "unknown action mode 'greedy'"),
 ])
 def test_cli_evaluate_bad_input_is_one_clear_line(tiny_run, flag, value, message):
     _, ckpt, tmp = tiny_run

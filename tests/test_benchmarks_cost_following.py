@@ -3,7 +3,13 @@
 import numpy as np
 import pytest
 
-from benchmarks.cost_following import COST_TARGETS, bar_at_20, doubling_slope, variant_name
+from benchmarks.cost_following import (
+    COST_TARGETS,
+    bar_at_20,
+    doubling_slope,
+    trained_variant,
+    variant_name,
+)
 
 
 def test_slope_of_a_model_that_follows_exactly():
@@ -28,3 +34,10 @@ def test_bad_shapes_and_the_bar_at_20():
     assert variant_name({}) == "cpu"
     assert variant_name({"token_bins": 16, "labels": "policy"}) == \
         "cpu+labels=policy+token_bins=16"
+
+
+def test_acting_stochastically_shares_the_pretrained_checkpoint():
+    variant = {"actions": "sampled", "stochastic_actions": True}
+    assert variant_name(variant) == "cpu+actions=sampled+stochastic_actions=True"
+    assert variant_name(trained_variant(variant)) == "cpu+actions=sampled"
+    assert trained_variant({"token_bins": 16}) == {"token_bins": 16}

@@ -112,3 +112,21 @@ def test_deployment_over_a_shift_axis_writes_rows_and_the_robustness_figure(tiny
     assert tmp_path / "out" / "robustness_friction_scale.png" in written
     table = (tmp_path / "out" / "table.md").read_text()
     assert "| safe_cdt [friction_scale=0.25] |" in table and table.count("| zero_shot [") == 3
+
+
+def test_deploy_act_sample_overrides_the_checkpoint_and_is_recorded(tiny_run, tmp_path):
+    ckpt = tiny_run[1]
+    base = ["deploy", "--ckpt", str(ckpt), "--pair", "PC1-PC2", "--variant", "zero_shot",
+            "--seeds", "1", "--episodes", "1", "--horizon", "8"]
+    records = {}
+    for act in ("checkpoint", "sample"):
+        out = tmp_path / act
+        result = CliRunner().invoke(app, [*base, "--act", act, "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        records[act] = json.loads((out / "results.json").read_text())
+    assert records["checkpoint"]["stochastic_actions"] is False  # the tiny ckpt acts by the mean
+    assert records["sample"]["stochastic_actions"] is True
+    assert records["sample"]["runs"][0]["metrics"] != records["checkpoint"]["runs"][0]["metrics"]
+    result = CliRunner().invoke(app, [*base, "--act", "greedy", "--out", str(tmp_path / "x")])
+    assert result.exit_code == 1 and "unknown action mode 'greedy'" in result.output
+    assert len(result.output.strip().splitlines()) == 1

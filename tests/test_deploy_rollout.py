@@ -118,3 +118,19 @@ def test_same_key_same_bits_and_vmapped_targets_match_single_runs():
         lambda k: cdt_episode(k, env, params, model, cfg, 30.0, 0.0, horizon=60))(keys[1]))
     np.testing.assert_allclose(res.costs[1, 1], single["cost"])
     np.testing.assert_allclose(res.returns[1, 1], single["return"], rtol=1e-2)
+
+
+def test_stochastic_actions_sample_the_head_with_the_step_keys():
+    env, params, cfg, model, run = _setup()
+    noisy = cfg.replace(stochastic_actions=True)
+    go = jax.jit(lambda k: cdt_episode(k, env, params, model, noisy, 40.0, 5.0, horizon=50))
+    a, b = jax.device_get(go(jax.random.PRNGKey(3))), jax.device_get(go(jax.random.PRNGKey(3)))
+    np.testing.assert_array_equal(a["actions"], b["actions"])  # same key, same bits
+    mean = jax.device_get(run(jax.random.PRNGKey(3), 40.0, 5.0))["actions"][:50]
+    assert not np.allclose(a["actions"], mean)  # the samples are not the mean actions
+    # With a vanishing std the sampled episode is the deterministic one.
+    narrow = {**model, "action_log_std": {**model["action_log_std"],
+                                          "bias": jnp.full((2,), -30.0)}}
+    ep = jax.device_get(jax.jit(lambda k: cdt_episode(k, env, params, narrow, noisy, 40.0, 5.0,
+                                                      horizon=50))(jax.random.PRNGKey(3)))
+    np.testing.assert_allclose(ep["actions"], mean, atol=1e-5)

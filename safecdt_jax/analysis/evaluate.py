@@ -39,16 +39,31 @@ def parse_targets(text: str) -> list[tuple[float, float]]:
     return out
 
 
+ACTION_MODES = {"checkpoint": None, "mean": False, "sample": True}
+
+
+def parse_action_mode(text: str) -> bool | None:
+    """`--act` of `evaluate` and `deploy`: "checkpoint" -> None (the checkpoint's own
+    `CDTConfig.stochastic_actions`), "mean" -> False, "sample" -> True."""
+    if text not in ACTION_MODES:
+        raise ValueError(f"unknown action mode {text!r}: expected one of "
+                         f"{', '.join(ACTION_MODES)}")
+    return ACTION_MODES[text]
+
+
 def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
                     episodes: int, seed: int = 0, horizon: int | None = None,
-                    dynamics: dict[str, float] | None = None) -> dict[str, np.ndarray]:
+                    dynamics: dict[str, float] | None = None,
+                    stochastic_actions: bool | None = None) -> dict[str, np.ndarray]:
     """Episode returns and costs [n_targets, episodes] of checkpoint `ckpt` in `task`, its
     dynamics shifted by `dynamics` ({field: scale}, `envs.dynamics`; None: nominal).
 
     Every target runs on the same `episodes` layouts (keys from `seed`), in one jitted call,
     reading the tokens as the checkpoint's model config encodes them. `horizon` cuts every
-    episode at that many steps (default: the task's time limit). Also returns the targets as
-    `target_return` and `target_cost` [n_targets] (raw units).
+    episode at that many steps (default: the task's time limit). `stochastic_actions` acts with
+    samples of the policy (True) or its mean (False); None keeps the checkpoint's own setting
+    (`CDTConfig.stochastic_actions`). Also returns the targets as `target_return` and
+    `target_cost` [n_targets] (raw units).
     """
     from safecdt_jax import envs
     from safecdt_jax.deploy.rollout import evaluate_targets
@@ -58,9 +73,11 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     env, params = envs.make(task)
     params = apply_dynamics(params, dynamics or {})
     policy = load_policy(ckpt, task=task)
+    cfg = policy.cfg if stochastic_actions is None else policy.cfg.replace(
+        stochastic_actions=bool(stochastic_actions))
     rets = np.array([t[0] for t in targets])  # float64: reported as given
     costs = np.array([t[1] for t in targets])
-    fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, policy.cfg, r, c,
+    fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, cfg, r, c,
                                                   episodes, horizon=horizon))
     res = jax.device_get(fn(jax.random.PRNGKey(seed), rets.astype(np.float32),
                             costs.astype(np.float32)))
@@ -130,7 +147,8 @@ def evaluation_table(summary: dict[str, Any]) -> str:
 
     shift = summary.get("dynamics", {})
     lines = [f"{summary['task']}" + (f" ({shift_label(shift)})" if shift else "")
-             + f", {summary['episodes']} episodes per target", "",
+             + f", {summary['episodes']} episodes per target"
+             + (", sampled actions" if summary.get("stochastic_actions") else ""), "",
              "| target return | target cost | mean return | mean cost | VR (%) |",
              "|---|---|---|---|---|"]
     lines += [f"| {row['target_return']:g} | {row['target_cost']:g} | {row['mean_return']:.2f} | "
@@ -152,10 +170,17 @@ def evaluation_table(summary: dict[str, Any]) -> str:
 def evaluate_checkpoint(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
                         episodes: int, seed: int = 0, horizon: int | None = None,
                         data_median: float | None = None,
-                        dynamics: dict[str, float] | None = None) -> dict[str, Any]:
+                        dynamics: dict[str, float] | None = None,
+                        stochastic_actions: bool | None = None) -> dict[str, Any]:
     """`evaluate_policy` then `summarize_evaluation`: the summary dict, with the checkpoint
-    folder, seed, horizon and dynamics shift added (see `evaluation_table` to print it)."""
-    res = evaluate_policy(ckpt, task, targets, episodes, seed, horizon, dynamics)
+    folder, seed, horizon, dynamics shift and whether the actions were sampled added (see
+    `evaluation_table` to print it)."""
+    from safecdt_jax.pretrain.checkpoint import configs_from_meta, read_meta
+
+    res = evaluate_policy(ckpt, task, targets, episodes, seed, horizon, dynamics,
+                          stochastic_actions)
     summary = summarize_evaluation(task, res, data_median)
+    sampled = (configs_from_meta(read_meta(ckpt))[0].stochastic_actions
+               if stochastic_actions is None else bool(stochastic_actions))
     return {"checkpoint": os.fspath(ckpt), "seed": seed, "horizon": horizon,
-            "dynamics": dict(dynamics or {}), **summary}
+            "dynamics": dict(dynamics or {}), "stochastic_actions": sampled, **summary}

@@ -56,8 +56,14 @@ def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None,
             raise ValueError(f"the cost budget must be positive, got {b:g}")
 
 
+Act = Annotated[str, typer.Option(
+    help="How the CDT acts: checkpoint (its own setting), mean (the policy mean, OSRL's) or "
+         "sample (a sample of the policy's Gaussian each step).")]
+
+
 def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed, out, title,
-                      dynamics=None, full_episodes=False):
+                      dynamics=None, full_episodes=False, act="checkpoint"):
+    from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.deploy.job import parse_list, run_deployment, write_results
     from safecdt_jax.envs.dynamics import parse_dynamics
 
@@ -65,7 +71,8 @@ def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, s
     budgets = parse_list(budget, float, "budget")
     cfg = _deploy_config(episodes, horizon, full_episodes)
     results = run_deployment(ckpt, target, variants, budgets, seeds, seed=seed, cfg=cfg,
-                             dynamics=parse_dynamics(dynamics))
+                             dynamics=parse_dynamics(dynamics),
+                             stochastic_actions=parse_action_mode(act))
     written = write_results(out, results, title)
     typer.echo((Path(out) / "table.md").read_text())
     typer.echo("wrote " + ", ".join(str(p) for p in written))
@@ -87,17 +94,20 @@ def deploy(
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
     full_episodes: FullEpisodes = False,
+    act: Act = "checkpoint",
 ) -> None:
     """Deploys a pretrained CDT in the pair's target task: every variant x budget x dynamics
     shift x seed at once."""
+    from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.deploy.job import parse_pair
 
     try:
         _, target = parse_pair(pair)
         _check_runs(variant, budget, episodes, horizon, dynamics)
+        parse_action_mode(act)
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
                           out or Path("runs") / pair, f"Safe-CDT deployment {pair}", dynamics,
-                          full_episodes)
+                          full_episodes, act)
     except ValueError as e:  # bad pair/variant/budget, CheckpointError: one clean line
         _fail(e)
 
@@ -173,6 +183,7 @@ def evaluate(
     dynamics: Annotated[str | None, typer.Option(
         help="Shift the task's dynamics, e.g. friction_scale=0.5,gear_scale=0.8 (one value per "
              "field here; `deploy` takes a list of values as a run axis).")] = None,
+    act: Act = "checkpoint",
 ) -> None:
     """Rolls out the CDT for each (return, cost) target; prints mean return, cost and VR, and
     how the mean cost follows the cost target (Spearman, per return target)."""
@@ -182,6 +193,7 @@ def evaluate(
         from safecdt_jax.analysis.evaluate import (
             evaluate_checkpoint,
             evaluation_table,
+            parse_action_mode,
             parse_targets,
         )
         from safecdt_jax.data import summarize_dataset
@@ -195,7 +207,7 @@ def evaluate(
                              "sweeps a list of values")
         median = None if data is None else summarize_dataset(data)["cost_median"]
         summary = evaluate_checkpoint(ckpt, task, pairs, episodes, seed, horizon, median,
-                                      shifts[0])
+                                      shifts[0], parse_action_mode(act))
     except (ValueError, OSError) as e:  # bad targets, task, checkpoint or data file: one line
         _fail(e)
     typer.echo(evaluation_table(summary))

@@ -62,17 +62,22 @@ def parse_list(text: str, kind: Callable[[str], Any], what: str) -> list:
     return out
 
 
-def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None):
+def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None,
+                    stochastic_actions: bool | None = None):
     """What deploying checkpoint `ckpt` into task `target` needs: `(env, env_params, policy,
     cfg, r_ref)`. `cfg` defaults to `DeployConfig()`; the token encoding comes with the policy's
-    model config, as it was trained. `r_ref` is the checkpoint's reference return (raw units).
-    Raises CheckpointError if the model does not fit the task."""
+    model config, as it was trained, and so does how it acts unless `stochastic_actions` (True:
+    samples of the policy, False: its mean) overrides it. `r_ref` is the checkpoint's reference
+    return (raw units). Raises CheckpointError if the model does not fit the task."""
     from safecdt_jax import envs
     from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.pretrain.checkpoint import load_policy
 
     env, env_params = envs.make(target)
     policy = load_policy(ckpt, task=target)
+    if stochastic_actions is not None:
+        sampled = policy.cfg.replace(stochastic_actions=bool(stochastic_actions))
+        policy = policy._replace(cfg=sampled)
     cfg = DeployConfig() if cfg is None else cfg
     return env, env_params, policy, cfg, float(policy.meta["dataset"]["reference_return"])
 
@@ -89,6 +94,7 @@ def run_deployment(
     progress: bool = True,
     dynamics: Sequence[dict[str, float]] = ({},),
     runs: Sequence[tuple[str, float]] | None = None,
+    stochastic_actions: bool | None = None,
 ) -> dict[str, Any]:
     """Deploy checkpoint `ckpt` into task `target` for every (variant, budget, shift) and seed.
 
@@ -98,7 +104,8 @@ def run_deployment(
     `cfg` (default `DeployConfig()`) sets the deployment; the token encoding comes with the
     checkpoint. `dynamics` lists the target's dynamics shifts ({field: scale}, from
     `envs.dynamics.parse_dynamics`; `{}` is the nominal target): each is a run axis of the same
-    compiled sweep, next to variants and budgets.
+    compiled sweep, next to variants and budgets. `stochastic_actions` (None: the checkpoint's
+    own `CDTConfig.stochastic_actions`) makes the CDT act with samples of its policy or its mean.
 
     One sweep call (runs x seeds); the episodes advance in stage-sized chunks of the same
     compiled program so a progress bar can follow. Returns the results record (plain Python,
@@ -116,7 +123,7 @@ def run_deployment(
 
     if seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {seeds}")
-    env, env_params, policy, cfg, r_ref = load_deployment(ckpt, target, cfg)
+    env, env_params, policy, cfg, r_ref = load_deployment(ckpt, target, cfg, stochastic_actions)
     dynamics = list(dynamics) or [{}]
     pairs = list(itertools.product(variants, budgets)) if runs is None else list(runs)
     combos = [(v, b, shift) for v, b in pairs for shift in dynamics]
@@ -160,6 +167,7 @@ def run_deployment(
         "reference_return": r_ref,
         "deploy_config": dataclasses.asdict(cfg),
         "model_config": policy.meta["model"],
+        "stochastic_actions": policy.cfg.stochastic_actions,  # as acted (may override the ckpt)
         "versions": versions(),
         "timing": {"deploy_s": wall, "env_steps": steps, "env_steps_per_s": steps / wall},
         "runs": runs,

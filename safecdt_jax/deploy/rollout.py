@@ -68,13 +68,15 @@ def context_push(ctx: Context, obs, rtg, ctg, t) -> Context:
     )
 
 
-def context_action(params: Params, cfg: CDTConfig, ctx: Context) -> jax.Array:
-    """Deterministic action [act] for the newest step: the policy mean, clipped to the box.
+def context_action(params: Params, cfg: CDTConfig, ctx: Context,
+                   key: jax.Array | None = None) -> jax.Array:
+    """Action [act] for the newest step: the policy mean clipped to the box, or with
+    `cfg.stochastic_actions` a sample of the policy drawn with `key`.
 
     Uses the trimmed evaluation pass (`model.cdt.newest_action`), equal to `last_action`.
     """
     batch = {name: value[None] for name, value in ctx._asdict().items()}
-    return newest_action(params, cfg, batch)[0]
+    return newest_action(params, cfg, batch, key)[0]
 
 
 def cdt_episode(
@@ -113,10 +115,11 @@ def cdt_episode(
     (raw targets the model saw at each step); per episode `length` (int32 steps until done),
     `return` and `cost` (sums over the episode). Steps after `done` are zero and not counted.
     """
-    def act(carry, obs, t, _key):
+    def act(carry, obs, t, step_key):
         ctx, rtg, ctg = carry
         ctx = context_push(ctx, obs, rtg * cfg.reward_scale, ctg * cfg.cost_scale, t)
-        action = context_action(params, cfg, ctx)
+        # The step key also reaches nothing else: the env's own noise comes from its state.
+        action = context_action(params, cfg, ctx, step_key)
         return action, (ctx._replace(actions=ctx.actions.at[-1].set(action)), rtg, ctg)
 
     def observe(carry, reward, cost):

@@ -222,7 +222,10 @@ class CDT(nn.Module):
             x = _Block(cfg, name=f"block_{i}")(x, allowed, mine, 4 * (k - 1) + 2 if last else None)
         x = nn.LayerNorm(epsilon=cfg.layernorm_eps, name="out_norm")(x)
         if newest_only:  # x is the newest state token's output [B, 1, D]
-            return {"action_mean": _dense(cfg.act_dim, "action_mean")(x)}
+            out = {"action_mean": _dense(cfg.act_dim, "action_mean")(x)}
+            if cfg.stochastic_actions:
+                out["action_log_std"] = _dense(cfg.act_dim, "action_log_std")(x)
+            return out
         x = x.reshape(b, k, 4, d)
         state_out, action_out = x[:, :, 2], x[:, :, 3]
 
@@ -322,12 +325,22 @@ def last_action(params: Params, cfg: CDTConfig, batch: Mapping[str, jax.Array]) 
     return jnp.clip(mean, -cfg.max_action, cfg.max_action)
 
 
-def newest_action(params: Params, cfg: CDTConfig, batch: Mapping[str, jax.Array]) -> jax.Array:
+def newest_action(params: Params, cfg: CDTConfig, batch: Mapping[str, jax.Array],
+                  key: jax.Array | None = None) -> jax.Array:
     """`last_action` through the trimmed pass (`CDT(newest_only=True)`): the same action [B, act]
     to float rounding, with the last block computed for the newest state token only. What the
-    rollouts call every env step. Only valid for windows whose newest step is real."""
+    rollouts call every env step. Only valid for windows whose newest step is real.
+
+    With `cfg.stochastic_actions` the action is a sample `mean + exp(log_std) * N(0, 1)` of the
+    Gaussian head, drawn with `key` (required then), clipped to the action box."""
     out = CDT(cfg).apply({"params": params}, batch, train=False, newest_only=True)
-    return jnp.clip(out["action_mean"][:, 0], -cfg.max_action, cfg.max_action)
+    action = out["action_mean"][:, 0]
+    if cfg.stochastic_actions:
+        if key is None:
+            raise ValueError("newest_action with CDTConfig.stochastic_actions needs a PRNG key")
+        noise = jax.random.normal(key, action.shape, action.dtype)
+        action = action + jnp.exp(out["action_log_std"][:, 0]) * noise
+    return jnp.clip(action, -cfg.max_action, cfg.max_action)
 
 
 def count_params(tree: Any) -> int:

@@ -96,6 +96,13 @@ class CDTConfig:
             response once the label is decremented; the `cpu` CDT did not follow with it
             alone (docs/CDT_FINDINGS.md sections 13-14). A documented deviation from OSRL;
             not with `token_rates`.
+        stochastic_actions: False (OSRL): rollouts act with the Gaussian head's mean, clipped to
+            the action box. True: with a sample `mean + exp(log_std) * N(0, 1)` of it, clipped,
+            the noise drawn from the episode's step keys. Why: where the behaviour data's cost
+            comes from the experts' exploration noise (the Car, whose wheel torques saturate at
+            +-0.02 so nearly every sampled action is a sign coin), a clone that acts with its
+            mean drives otherwise than the episodes whose labels it was given
+            (docs/CDT_FINDINGS.md sections 16-17). Pretraining is unchanged.
         return_edges: increasing bin edges of the ramps for the return-to-go input (scaled units,
             RTG * reward_scale); empty until fitted. Values outside them saturate.
         cost_edges: the same for the cost-to-go input (CTG * cost_scale, before any transform:
@@ -128,6 +135,7 @@ class CDTConfig:
     token_bins: int = 0
     token_rates: bool = False
     constant_targets: bool = False
+    stochastic_actions: bool = False
     return_edges: tuple[float, ...] = ()
     cost_edges: tuple[float, ...] = ()
 
@@ -135,8 +143,8 @@ class CDTConfig:
         check.integers(self, "obs_dim", "act_dim", "episode_len", "embed_dim", "num_layers",
                        "num_heads", "seq_len", "mlp_ratio", "lora_rank")
         check.integers(self, "token_bins", minimum=0)
-        check.booleans(self, "token_rates", "constant_targets", "cost_transform",
-                       "use_state_head")
+        check.booleans(self, "token_rates", "constant_targets", "stochastic_actions",
+                       "cost_transform", "use_state_head")
         if self.token_rates and self.constant_targets:
             raise ValueError("CDTConfig.token_rates and constant_targets exclude each other: a "
                              "rate divides what is left, a constant target never shrinks")
