@@ -37,6 +37,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json
+from safecdt_jax.paths import DEFAULT_ACTIONS
 
 COST_TARGETS = (10.0, 20.0, 40.0, 80.0)
 RETURN_RATIOS = (0.5, 1.0)
@@ -70,7 +71,7 @@ def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
     return {"slope": fit(y.mean(axis=1)), "low": float(low), "high": float(high)}
 
 
-def data_fingerprint(task: str, actions: str = "executed") -> str:
+def data_fingerprint(task: str, actions: str = DEFAULT_ACTIONS) -> str:
     """The fingerprint (`dataset_record`) of `task`'s source data with this action recording,
     collecting it if needed: a cell measured on other data is stale."""
     from safecdt_jax.data import load_dataset
@@ -117,7 +118,7 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
 
     start = time.perf_counter()
     variant = dict(variant or {})
-    data = ensure_source_data(task, actions=variant.get("actions", "executed"))
+    data = ensure_source_data(task, actions=variant.get("actions", DEFAULT_ACTIONS))
     median = summarize_dataset(data)["cost_median"]
     pre_fields = {f.name for f in dataclasses.fields(PretrainConfig)}
     pre = {k: v for k, v in variant.items() if k in pre_fields}
@@ -198,34 +199,36 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2,3")
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--token-bins", type=int, default=None)
-    ap.add_argument("--token-rates", action="store_true")
-    ap.add_argument("--constant-targets", action="store_true")
+    on_off = argparse.BooleanOptionalAction  # --x / --no-x; unset: the preset's value
+    ap.add_argument("--token-rates", action=on_off)
+    ap.add_argument("--constant-targets", action=on_off)
     ap.add_argument("--labels", choices=("episode", "policy", "auto"), default=None)
-    ap.add_argument("--scale-actions", action="store_true")
-    ap.add_argument("--standardize-obs", action="store_true")
+    ap.add_argument("--scale-actions", action=on_off)
+    ap.add_argument("--standardize-obs", action=on_off)
     ap.add_argument("--relabel-percent", type=float, default=None,
-                    help="Pareto-relabelled copies per episode (the cpu default: 0.2)")
+                    help="Pareto-relabelled copies per episode (the cpu default: 1.0)")
     ap.add_argument("--c0", type=float, default=None,
                     help="trajectory weights max(0, c0 - C) (the cpu default: OSRL's 70)")
-    ap.add_argument("--actions", choices=ACTION_RECORDINGS, default="executed",
+    ap.add_argument("--actions", choices=ACTION_RECORDINGS, default=DEFAULT_ACTIONS,
                     help="the source data's action recording (docs/EXPERTS.md)")
-    ap.add_argument("--stochastic-actions", action="store_true",
-                    help="act with samples of the CDT's Gaussian head, not its mean")
+    ap.add_argument("--stochastic-actions", action=on_off,
+                    help="act with samples of the CDT's Gaussian head (--no-: its mean)")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     if args.out is None:
         suffix = "" if args.episodes == 20 else f"_{args.episodes}ep"
         args.out = Path(f"benchmarks/results/cost_following{suffix}.json")
     variant = {k: v for k, v in (("token_bins", args.token_bins),
-                                 ("token_rates", args.token_rates or None),
-                                 ("constant_targets", args.constant_targets or None),
+                                 ("token_rates", args.token_rates),
+                                 ("constant_targets", args.constant_targets),
                                  ("labels", args.labels),
-                                 ("scale_actions", args.scale_actions or None),
-                                 ("standardize_obs", args.standardize_obs or None),
+                                 ("scale_actions", args.scale_actions),
+                                 ("standardize_obs", args.standardize_obs),
                                  ("relabel_percent", args.relabel_percent),
                                  ("c0", args.c0),
-                                 ("stochastic_actions", args.stochastic_actions or None),
-                                 ("actions", None if args.actions == "executed" else args.actions))
+                                 ("stochastic_actions", args.stochastic_actions),
+                                 ("actions",
+                                  None if args.actions == DEFAULT_ACTIONS else args.actions))
                if v is not None}
     name = variant_name(variant)
     old = json.loads(args.out.read_text()) if args.out.exists() else {"results": []}

@@ -33,14 +33,14 @@ from safecdt_jax.deploy import (
     stack_specs,
     sweep,
 )
-from safecdt_jax.model import CDTConfig, init_cdt
+from safecdt_jax.model import CDTConfig, init_cdt, with_nominal_edges
 
 
 def setup(task: str, preset: str, episodes: int):
     """(env, env params, model config, base params, deploy config, safe_cdt spec [1 run])."""
     env, params = envs.make(task)
-    model_cfg = CDTConfig.preset(preset, env.observation_size, env.action_size,
-                                 env.episode_length)
+    model_cfg = with_nominal_edges(CDTConfig.preset(preset, env.observation_size,
+                                                    env.action_size, env.episode_length))
     base = init_cdt(jax.random.PRNGKey(0), model_cfg)
     cfg = DeployConfig(episodes=episodes)
     spec = make_spec(make_variant("safe_cdt", cfg), 30.0, 20.0)

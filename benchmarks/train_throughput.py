@@ -19,7 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.common import machine, markdown_table, median, time_call, write_json
-from safecdt_jax.model import CDTConfig, OptimConfig, count_params, init_train_state, last_action
+from safecdt_jax.model import (
+    CDTConfig,
+    OptimConfig,
+    count_params,
+    init_train_state,
+    last_action,
+    with_nominal_edges,
+)
 from safecdt_jax.pretrain import PretrainConfig, TrainData, make_train_chunk, run_key
 
 # (obs_dim, act_dim, episode_len) of the task families; the robot's level does not change them.
@@ -49,7 +56,7 @@ def measure_train(preset: str, task: str, batch: int, repeats: int, work: int) -
     Each timed call runs `chunk = clip(work // batch, 1, 64)` updates (about `work` sequences).
     """
     obs, act, horizon = SIZES[task]
-    cfg = CDTConfig.preset(preset, obs, act, horizon)
+    cfg = with_nominal_edges(CDTConfig.preset(preset, obs, act, horizon))
     data = synthetic_data(obs, act, horizon)
     weights = jnp.full(data.lengths.shape, 1.0 / data.lengths.shape[0])
     chunk = int(np.clip(work // batch, 1, 64))
@@ -67,7 +74,7 @@ def measure_train(preset: str, task: str, batch: int, repeats: int, work: int) -
 def measure_inference(preset: str, task: str, batch: int, calls: int = 200) -> dict:
     """Median milliseconds of one jitted `last_action` call on a full K-step window."""
     obs, act, horizon = SIZES[task]
-    cfg = CDTConfig.preset(preset, obs, act, horizon)
+    cfg = with_nominal_edges(CDTConfig.preset(preset, obs, act, horizon))
     params = init_train_state(jax.random.key(0), cfg).params
     k = cfg.seq_len
     window = {"states": jnp.ones((batch, k, obs)), "actions": jnp.zeros((batch, k, act)),

@@ -49,7 +49,7 @@ def programs(preset: str, batch: int) -> dict:
     """Name -> (jitted fn, args) for every piece of one update at `batch`."""
     from benchmarks.train_throughput import SIZES, synthetic_data
     from safecdt_jax.data import sample_windows
-    from safecdt_jax.model import CDTConfig, OptimConfig, init_train_state
+    from safecdt_jax.model import CDTConfig, OptimConfig, init_train_state, with_nominal_edges
     from safecdt_jax.model.cdt import _dropout_noise, _dropout_shapes
     from safecdt_jax.model.loss import cdt_loss
     from safecdt_jax.model.optim import make_optimizer
@@ -57,7 +57,7 @@ def programs(preset: str, batch: int) -> dict:
     from safecdt_jax.pretrain.loop import make_update
 
     obs, act, horizon = SIZES["CarGoal"]
-    cfg = CDTConfig.preset(preset, obs, act, horizon)
+    cfg = with_nominal_edges(CDTConfig.preset(preset, obs, act, horizon))
     quiet = cfg.replace(embedding_dropout=0.0, attention_dropout=0.0, residual_dropout=0.0)
     data = synthetic_data(obs, act, horizon)
     weights = jnp.full(data.lengths.shape, 1.0 / data.lengths.shape[0])

@@ -18,10 +18,16 @@ def cache_root() -> Path:
     return Path(env).expanduser() if env else Path.home() / ".cache" / "safecdt-jax"
 
 
-def dataset_path(task: str, actions: str = "executed") -> Path:
+# The default action recording of expert data (`experts.collect.ACTION_RECORDINGS`): the
+# experts' Gaussian samples clipped to [-1, 1], DSRL's convention (docs/EXPERTS.md "Actions").
+DEFAULT_ACTIONS = "sampled"
+
+
+def dataset_path(task: str, actions: str = DEFAULT_ACTIONS) -> Path:
     """Default location of the collected source dataset for `task` (a DSRL-format HDF5 file):
-    `TASK.hdf5`, or `TASK-{actions}.hdf5` for expert data of another action recording."""
-    suffix = "" if actions == "executed" else f"-{actions}"
+    `TASK.hdf5` for the default action recording (`DEFAULT_ACTIONS`), `TASK-{actions}.hdf5`
+    for expert data of another."""
+    suffix = "" if actions == DEFAULT_ACTIONS else f"-{actions}"
     return cache_root() / "datasets" / f"{task}{suffix}.hdf5"
 
 

@@ -17,7 +17,14 @@ from safecdt_jax.deploy import (
     replay_weights,
     stack_variants,
 )
-from safecdt_jax.model import CDTConfig, apply_cdt_lora, init_cdt, init_lora, merge_lora
+from safecdt_jax.model import (
+    CDTConfig,
+    apply_cdt_lora,
+    init_cdt,
+    init_lora,
+    merge_lora,
+    with_nominal_edges,
+)
 
 T, OBS, ACT = 12, 3, 2
 MCFG = CDTConfig.preset("tiny", OBS, ACT, T)
@@ -169,7 +176,7 @@ def test_adapter_gradient_skips_the_frozen_weights_gradients():
     from safecdt_jax.data.windows import Windows
     from safecdt_jax.model import dummy_batch
 
-    cfg = CDTConfig.preset("cpu", 72, 2, 1000)
+    cfg = with_nominal_edges(CDTConfig.preset("cpu", 72, 2, 1000))
     params = init_cdt(jax.random.key(0), cfg)
     adapters = init_lora(jax.random.key(1), params, cfg)
     b = dummy_batch(cfg, 32)

@@ -208,13 +208,12 @@ def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
     assert "limit 5, seed 0" in res.output and (tmp_path / "run" / "curves.png").exists()
     out = tmp_path / "data.hdf5"
     res = CliRunner().invoke(app, ["collect", "--task", "PointCircle1", "--snapshots",
-                                   str(snaps), "--episodes", "6", "--out", str(out),
-                                   "--actions", "sampled"])
+                                   str(snaps), "--episodes", "6", "--out", str(out)])
     assert res.exit_code == 0, res.output
     data = load_dataset(out)
     assert 1 <= data.n_episodes <= 6 and data.horizon == 20
     assert data.attrs["behaviour"] == "expert" and data.attrs["task"] == "PointCircle1"
-    assert data.attrs["actions"] == "sampled"
+    assert data.attrs["actions"] == "sampled"  # the default recording
     assert json.loads(data.attrs["grid_filter"])["target"] == 6  # nested attrs: JSON strings
     assert data.attrs["seed"] == 0  # so that `run` reuses a file `collect` wrote
     snapshots = json.loads(data.attrs["snapshots"])
@@ -277,10 +276,12 @@ def test_source_data_with_an_unknown_action_recording_is_a_clear_error(tmp_path)
     assert not (tmp_path / "d.hdf5").exists()
 
 
-def test_sampled_data_have_their_own_default_file(monkeypatch, tmp_path):
+def test_executed_data_have_their_own_default_file(monkeypatch, tmp_path):
     from safecdt_jax import paths
 
     monkeypatch.setenv(paths.CACHE_ENV, str(tmp_path))
+    assert paths.DEFAULT_ACTIONS == "sampled"  # DSRL's convention, docs/EXPERTS.md "Actions"
     assert paths.dataset_path("CarCircle1") == tmp_path / "datasets" / "CarCircle1.hdf5"
-    assert paths.dataset_path("CarCircle1", "sampled").name == "CarCircle1-sampled.hdf5"
+    assert paths.dataset_path("CarCircle1", "sampled") == paths.dataset_path("CarCircle1")
+    assert paths.dataset_path("CarCircle1", "executed").name == "CarCircle1-executed.hdf5"
 

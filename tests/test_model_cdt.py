@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safecdt_jax.model import CDTConfig, init_cdt
+from safecdt_jax.model import CDTConfig, init_cdt, with_nominal_edges
 from safecdt_jax.model import apply_cdt as apply_eager
 from safecdt_jax.model import last_action as last_action_eager
 
@@ -54,7 +54,7 @@ def test_init_is_deterministic_and_key_dependent(params):
 
 
 def test_init_statistics():
-    cfg = CDTConfig.preset("cpu", obs_dim=72, act_dim=2, episode_len=1000)
+    cfg = with_nominal_edges(CDTConfig.preset("cpu", obs_dim=72, act_dim=2, episode_len=1000))
     p = init_cdt(jax.random.key(3), cfg)
     flat = jax.tree_util.tree_flatten_with_path(p)[0]
     weights = [v for path, v in flat if path[-1].key in ("kernel", "embedding")]

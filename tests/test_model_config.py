@@ -12,6 +12,7 @@ from safecdt_jax.model import (
     init_lora,
     lora_param_count,
     param_shapes,
+    with_nominal_edges,
 )
 
 CAR_GOAL = dict(obs_dim=72, act_dim=2, episode_len=1000)
@@ -102,8 +103,10 @@ def test_per_block_count_matches_osrl():
 
 
 def test_other_preset_counts():
-    counts = {n: count_params(param_shapes(CDTConfig.preset(n, **CAR_GOAL))) for n in PRESET_NAMES}
-    assert counts["cpu"] == 175_054
+    counts = {n: count_params(param_shapes(with_nominal_edges(CDTConfig.preset(n, **CAR_GOAL))))
+              for n in PRESET_NAMES}
+    # 175,054 with linear tokens; the 16 return and 16 cost ramps add 2 x 15 x 64 weights.
+    assert counts["cpu"] == 175_054 + 2 * 15 * 64
     assert counts["paper"] == 3_459_150
     assert 3.4e6 < counts["paper"] < 3.6e6
 

@@ -5,12 +5,19 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from safecdt_jax.model import CDTConfig, apply_cdt, init_cdt, last_action, newest_action
+from safecdt_jax.model import (
+    CDTConfig,
+    apply_cdt,
+    init_cdt,
+    last_action,
+    newest_action,
+    with_nominal_edges,
+)
 
 
 @pytest.mark.parametrize("preset,layers", [("tiny", 1), ("tiny", 3), ("cpu", 2)])
 def test_newest_action_equals_last_action(preset, layers):
-    cfg = CDTConfig.preset(preset, 7, 2, 50, num_layers=layers)
+    cfg = with_nominal_edges(CDTConfig.preset(preset, 7, 2, 50, num_layers=layers))
     params = init_cdt(jax.random.PRNGKey(1), cfg)
     # Non-trivial LayerNorms and biases, so every parameter matters.
     params = jax.tree.map(lambda p: p + 0.05 * jax.random.normal(jax.random.PRNGKey(2), p.shape),

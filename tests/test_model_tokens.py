@@ -14,6 +14,7 @@ from safecdt_jax.model import (
     fit_edges,
     init_cdt,
     piecewise_linear,
+    with_nominal_edges,
     with_token_edges,
 )
 from safecdt_jax.model.tokens import steps_left_scale
@@ -94,11 +95,11 @@ def _normed_cost_token(params, cfg, ctg):
 
 
 def test_ramps_keep_cost_targets_apart_through_the_layernorm():
-    # At init, the cpu preset's linear encoding 5 - 0.1 CTG maps cost-to-go 0, 10 and 20 to
-    # nearly one direction after the LayerNorm (only the sign of 50 - CTG survives the
-    # normalisation); the ramps give each its own.
+    # At init, the linear encoding 5 - 0.1 CTG (the cpu preset's before its ramps) maps
+    # cost-to-go 0, 10 and 20 to nearly one direction after the LayerNorm (only the sign of
+    # 50 - CTG survives the normalisation); the ramps give each its own.
     ctg = np.array([0.0, 10.0, 20.0]) * 0.1
-    linear = CDTConfig.preset("cpu", **SIZES)
+    linear = CDTConfig.preset("cpu", **SIZES, token_bins=0)
     ramps = with_token_edges(CDTConfig.preset("cpu", **SIZES, token_bins=16),
                              np.zeros(1), np.linspace(0, 100, 101))
     cos = {}
@@ -156,3 +157,13 @@ def test_rates_make_a_late_small_rtg_read_like_a_whole_episode():
                                            "timesteps": jnp.full((1, 1), t)})["action_mean"]
                    for r, t in ((5.0, 20), (15.0, 0)))
     assert not np.allclose(late, start, atol=1e-6)
+
+
+def test_nominal_edges_span_the_scaled_ranges_and_leave_linear_tokens_alone():
+    cfg = with_nominal_edges(CDTConfig.preset("cpu", **SIZES), max_return=60.0, max_cost=100.0)
+    assert cfg.token_bins == 16 and len(cfg.return_edges) == len(cfg.cost_edges) == 17
+    # The model reads RTG x 0.1 and CTG x 0.1 (the cpu preset's scales).
+    assert cfg.return_edges[0] == 0.0 and cfg.return_edges[-1] == pytest.approx(6.0)
+    assert cfg.cost_edges[0] == 0.0 and cfg.cost_edges[-1] == pytest.approx(10.0)
+    linear = CDTConfig.preset("cpu", **SIZES, token_bins=0)
+    assert with_nominal_edges(linear) is linear

@@ -77,8 +77,11 @@ def _assert_trees_equal(a, b):
 def test_config_defaults_and_validation():
     cpu = default_pretrain("cpu")
     assert cpu.relabel and (cpu.c0, cpu.steps, cpu.batch_size) == (70.0, 10_000, 32)
-    assert (cpu.relabel_percent, cpu.labels) == (0.2, "episode")  # OSRL's
+    assert (cpu.relabel_percent, cpu.labels) == (1.0, "auto")  # docs/CDT_FINDINGS.md 15, 17
+    assert cpu.scale_actions and cpu.standardize_obs
     osrl = default_pretrain("osrl")
+    assert (osrl.relabel_percent, osrl.labels) == (0.2, "episode")  # OSRL's
+    assert not (osrl.scale_actions or osrl.standardize_obs)
     assert (osrl.batch_size, osrl.steps) == (2048, 100_000)
     assert default_pretrain("cpu", steps=7).steps == 7
     bad = [dict(steps=0), dict(batch_size=-1), dict(chunk=1.5), dict(seed=-1), dict(c0=0.0),
@@ -350,3 +353,27 @@ def test_auto_labels_use_the_policies_only_where_the_data_name_them():
                                episode_costs(labelled(named, auto.replace(labels="policy"))))
     assert len(set(np.round(episode_costs(labelled(named, auto)), 4))) == 2  # one per policy
     np.testing.assert_array_equal(episode_costs(labelled(data, auto)), episode_costs(data))
+
+
+def test_cli_pretrain_keeps_the_cpu_presets_defaults_unless_told(tmp_path):
+    data = synthetic_dataset(n=8)
+    data = make_dataset(data.observations, data.actions, data.rewards, data.costs,
+                        data.lengths, episode_info={"snapshot": np.arange(8) % 2},
+                        attrs={"task": TASK})
+    path = tmp_path / "policies.hdf5"
+    write_dataset(path, data)
+    args = ["pretrain", "--data", str(path), "--preset", "cpu", "--steps", "1", "--batch", "2",
+            "--chunk", "1"]
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a")])
+    assert result.exit_code == 0, result.output
+    model, _, pre = configs_from_meta(load_checkpoint(tmp_path / "a").meta)
+    assert (pre.labels, pre.relabel_percent, pre.scale_actions, pre.standardize_obs) == (
+        "auto", 1.0, True, True)
+    assert model.token_bins == 16 and model.constant_targets and not model.stochastic_actions
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b"), "--no-scale-actions",
+                                      "--labels", "episode", "--relabel-percent", "0.2",
+                                      "--stochastic-actions"])
+    assert result.exit_code == 0, result.output
+    model, _, pre = configs_from_meta(load_checkpoint(tmp_path / "b").meta)
+    assert (pre.labels, pre.relabel_percent, pre.scale_actions) == ("episode", 0.2, False)
+    assert model.stochastic_actions

@@ -21,8 +21,8 @@ def collect_cmd(
     episodes: Annotated[int | None, typer.Option(
         help="Episodes kept (default: DSRL's count for experts, 1000 scripted).")] = None,
     out: Annotated[Path | None, typer.Option(
-        help="Output HDF5 file (default: the cache's datasets/TASK.hdf5, TASK-sampled.hdf5 "
-             "with --actions sampled).")] = None,
+        help="Output HDF5 file (default: the cache's datasets/TASK.hdf5, TASK-executed.hdf5 "
+             "with --actions executed).")] = None,
     seed: Annotated[int, typer.Option(help="PRNG seed (layouts, action noise, filter).")] = 0,
     behaviour: Annotated[str, typer.Option(
         help="'expert': roll out the task's committed PPO-Lagrangian snapshots and grid-filter "
@@ -30,9 +30,9 @@ def collect_cmd(
     snapshots: Annotated[Path | None, typer.Option(
         help="Expert snapshot file (default: the committed one of TASK).")] = None,
     actions: Annotated[str, typer.Option(
-        help="How expert actions are recorded: 'executed' (the Car's torques clipped to "
-             "+-0.02, the default) or 'sampled' (the Gaussian sample clipped to [-1, 1], "
-             "DSRL's convention; docs/EXPERTS.md).")] = "executed",
+        help="How expert actions are recorded: 'sampled' (the Gaussian sample clipped to "
+             "[-1, 1], DSRL's convention, the default) or 'executed' (the Car's torques "
+             "clipped to +-0.02; docs/EXPERTS.md).")] = "sampled",
 ) -> None:
     """Collects behaviour episodes of a task into a DSRL-format HDF5 file."""
     from safecdt_jax import envs

@@ -29,12 +29,16 @@ def pretrain(
         help="Continue the checkpoint in --out up to --steps.")] = False,
     overwrite: Annotated[bool, typer.Option(
         help="Delete checkpoints already in --out first.")] = False,
-    scale_actions: Annotated[bool, typer.Option(
+    scale_actions: Annotated[bool | None, typer.Option(
         help="Train on actions divided by the data's largest |action| (folded into the saved "
-             "weights, which emit raw actions either way).")] = False,
-    standardize_obs: Annotated[bool, typer.Option(
+             "weights, which emit raw actions either way; default: the preset's, cpu on).")
+    ] = None,
+    standardize_obs: Annotated[bool | None, typer.Option(
         help="Train on observations standardised by the data's mean and std (folded into "
-             "the saved weights).")] = False,
+             "the saved weights; default: the preset's, cpu on).")] = None,
+    relabel_percent: Annotated[float | None, typer.Option(
+        min=0.0, help="Pareto-relabelled copies per episode (default: the preset's; cpu 1.0, "
+                      "OSRL 0.2).")] = None,
     cost_scale: Annotated[float | None, typer.Option(
         help="Cost-to-go tokens are raw CTG times this (default: the preset's; cpu 0.1, "
              "OSRL 1).")] = None,
@@ -49,12 +53,17 @@ def pretrain(
              "each).")] = None,
     constant_targets: Annotated[bool | None, typer.Option(
         help="Tokens hold each episode's t=0 return and cost at every step, and rollouts "
-             "keep their targets (not decremented); best with --labels policy.")] = None,
-    labels: Annotated[str, typer.Option(
+             "keep their targets (not decremented); best with --labels policy (default: the "
+             "preset's, cpu on).")] = None,
+    stochastic_actions: Annotated[bool | None, typer.Option(
+        help="Act with samples of the policy's Gaussian instead of its mean in evaluation "
+             "and deployment (default: off).")] = None,
+    labels: Annotated[str | None, typer.Option(
         help="What the tokens count from: episode (its realised return and cost) or policy "
              "(the mean of the episodes of its behaviour policy, episode_info/snapshot), or "
-             "auto (policy where the data have snapshots).")
-    ] = "episode",
+             "auto (policy where the data have snapshots; default: the preset's, cpu auto, "
+             "OSRL episode).")
+    ] = None,
 ) -> None:
     """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs.
 
@@ -68,14 +77,16 @@ def pretrain(
     """
     from safecdt_jax import pretrain as pt
 
-    overrides = {"seed": seed, "scale_actions": scale_actions,
-                 "standardize_obs": standardize_obs, "labels": labels}
-    for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk)):
+    overrides = {"seed": seed}
+    for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk),
+                        ("scale_actions", scale_actions), ("standardize_obs", standardize_obs),
+                        ("labels", labels), ("relabel_percent", relabel_percent)):
         if value is not None:
             overrides[name] = value
     model = {name: value for name, value in (
         ("cost_scale", cost_scale), ("cost_offset", cost_offset), ("token_bins", token_bins),
-        ("token_rates", token_rates), ("constant_targets", constant_targets))
+        ("token_rates", token_rates), ("constant_targets", constant_targets),
+        ("stochastic_actions", stochastic_actions))
         if value is not None}
     try:
         cfg = pt.default_pretrain(preset, **overrides)

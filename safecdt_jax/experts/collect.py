@@ -38,15 +38,16 @@ from safecdt_jax.data.relabel import grid_filter as relabel_grid_filter
 from safecdt_jax.experts.config import ExpertConfig
 from safecdt_jax.experts.export import load_snapshots
 from safecdt_jax.experts.ppo_lag import make_train
+from safecdt_jax.paths import DEFAULT_ACTIONS
 
 SNAPSHOT_DIR = Path(__file__).parent / "snapshots"
-EXPERT_COLLECTOR_VERSION = 2  # 2: actions recorded as executed (the Car's clipped torques)
+EXPERT_COLLECTOR_VERSION = 2  # 2: the action recording is an attribute ('actions')
 
-# How an episode's actions are recorded: 'executed' (`Robot.executed_action`: the Car's wheel
-# torques clipped to +-0.02) or 'sampled' (the policy's Gaussian sample clipped to the action
-# box [-1, 1], DSRL's convention). Both step the env identically; they differ in what a
-# deterministic clone's mean action executes (docs/EXPERTS.md "Actions"). The Point's actions are
-# the same under both.
+# How an episode's actions are recorded: 'sampled' (the default, `paths.DEFAULT_ACTIONS`: the
+# policy's Gaussian sample clipped to the action box [-1, 1], DSRL's convention) or 'executed'
+# (`Robot.executed_action`: the Car's wheel torques clipped to +-0.02). Both step the env
+# identically; they differ in what a clone's action executes (docs/EXPERTS.md "Actions"). The
+# Point's actions are the same under both.
 ACTION_RECORDINGS = ("executed", "sampled")
 
 
@@ -87,7 +88,7 @@ def snapshot_path(task: str) -> Path:
 
 
 @functools.cache
-def _rollout_fn(cfg: ExpertConfig, horizon: int, actions: str = "executed") -> Callable:
+def _rollout_fn(cfg: ExpertConfig, horizon: int, actions: str = DEFAULT_ACTIONS) -> Callable:
     """jit(vmap(episode)): (keys [c], snapshots {leaves [c, ...]}) -> (obs, final obs, actions
     as `actions` says ('executed': `Robot.executed_action`, the Car's torques clipped to
     +-0.02; 'sampled': the Gaussian sample clipped to [-1, 1]), rewards, costs), every episode
@@ -118,7 +119,7 @@ def _rollout_fn(cfg: ExpertConfig, horizon: int, actions: str = "executed") -> C
 def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int,
                       horizon: int | None = None, chunk: int = DEFAULT_CHUNK,
                       progress: Callable[[int], None] | None = None,
-                      actions: str = "executed") -> Dataset:
+                      actions: str = DEFAULT_ACTIONS) -> Dataset:
     """`per_snapshot` stochastic episodes of every snapshot in file `path`, as a `Dataset`,
     actions recorded as `actions` says (`ACTION_RECORDINGS`; attrs 'actions').
 
@@ -211,7 +212,7 @@ def planned_episodes(task: str, episodes: int | None = None) -> int:
 def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
                    size: DsrlSize | None = None, snapshots: str | os.PathLike | None = None,
                    horizon: int | None = None, progress: Callable[[int], None] | None = None,
-                   seed: int | None = None, actions: str = "executed") -> Dataset:
+                   seed: int | None = None, actions: str = DEFAULT_ACTIONS) -> Dataset:
     """The source data of `task` from its expert snapshots (default: the committed file),
     grid-filtered to DSRL's size (default `DSRL_SIZES[task]`), actions recorded as `actions`
     says (`ACTION_RECORDINGS`).
@@ -245,7 +246,7 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
 
 
 def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int,
-               actions: str = "executed") -> bool:
+               actions: str = DEFAULT_ACTIONS) -> bool:
     """Whether `path` holds expert data of `task` from the committed snapshots (same SHA-256),
     this collector and physics version, `seed`, the filter's target size and the action
     recording (files without the attribute are 'executed')."""
@@ -270,7 +271,7 @@ BEHAVIOURS = ("expert", "scripted")
 def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | None = None,
                        seed: int = 0, path: str | os.PathLike | None = None,
                        progress: Callable[[int], None] | None = None,
-                       actions: str = "executed") -> Path:
+                       actions: str = DEFAULT_ACTIONS) -> Path:
     """The path of a current source data set of `task` (default `paths.dataset_path(task,
     actions)`), collected there first unless the file is current.
 

@@ -34,7 +34,12 @@ from safecdt_jax.model.optim import (
     make_optimizer,
     make_train_step,
 )
-from safecdt_jax.model.tokens import fit_edges, piecewise_linear, with_token_edges
+from safecdt_jax.model.tokens import (
+    fit_edges,
+    piecewise_linear,
+    with_nominal_edges,
+    with_token_edges,
+)
 
 __all__ = [
     "CDT",
@@ -66,5 +71,6 @@ __all__ = [
     "param_shapes",
     "piecewise_linear",
     "temperature_loss",
+    "with_nominal_edges",
     "with_token_edges",
 ]

@@ -87,3 +87,14 @@ def with_token_edges(cfg, returns_to_go: np.ndarray, costs_to_go: np.ndarray,
         rtg, ctg = rtg * scale, ctg * scale
     return cfg.replace(return_edges=fit_edges(rtg, cfg.token_bins, weights),
                        cost_edges=fit_edges(ctg, cfg.token_bins, weights))
+
+
+def with_nominal_edges(cfg, max_return: float = 60.0, max_cost: float = 100.0):
+    """`cfg` with evenly spaced ramp edges over raw return-to-go [0, max_return] and cost-to-go
+    [0, max_cost] (the source tasks' range), for a model built without data: throughput
+    benchmarks and tests of the architecture. Pretraining fits the edges to its data instead
+    (`with_token_edges`). A config with `token_bins == 0` is returned unchanged."""
+    if not cfg.token_bins:
+        return cfg
+    n = cfg.token_bins + 1
+    return with_token_edges(cfg, np.linspace(0.0, max_return, n), np.linspace(0.0, max_cost, n))

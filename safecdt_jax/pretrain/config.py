@@ -89,7 +89,11 @@ class PretrainConfig:
 # `CDTConfig`.
 _DEFAULTS: dict[str, dict[str, Any]] = {
     "tiny": dict(steps=200, batch_size=16),
-    "cpu": dict(steps=10_000, batch_size=32),
+    # Policy-mean labels, a relabelled copy of every episode, normalised inputs and outputs:
+    # with the model preset's constant ramp tokens, what makes the cost follow its target
+    # (docs/CDT_FINDINGS.md sections 13-15 and 17).
+    "cpu": dict(steps=10_000, batch_size=32, labels="auto", relabel_percent=1.0,
+                scale_actions=True, standardize_obs=True),
     "osrl": dict(steps=100_000, batch_size=2048),
     "paper": dict(steps=100_000, batch_size=2048),
 }
