@@ -271,15 +271,22 @@ def test_cli_cost_token_options_reach_the_checkpoint(data_file, tmp_path):
     assert bad.exit_code == 1 and "error: CDTConfig.cost_scale" in bad.output
 
 
-def test_cli_token_encoding_and_policy_labels_reach_the_checkpoint(data_file, tmp_path):
-    # Two behaviour policies (episode_info/snapshot): edges are fitted to the policy-mean labels,
-    # saved with the model, and read back by what evaluation loads.
+def _two_policy_data(tmp_path):
+    """8 synthetic episodes of two behaviour policies (episode_info/snapshot), written to HDF5:
+    (dataset, path)."""
     data = synthetic_dataset(n=8)
     data = make_dataset(data.observations, data.actions, data.rewards, data.costs,
                         data.lengths, episode_info={"snapshot": np.arange(8) % 2},
                         attrs={"task": TASK})
     path = tmp_path / "policies.hdf5"
     write_dataset(path, data)
+    return data, path
+
+
+def test_cli_token_encoding_and_policy_labels_reach_the_checkpoint(data_file, tmp_path):
+    # Two behaviour policies (episode_info/snapshot): edges are fitted to the policy-mean labels,
+    # saved with the model, and read back by what evaluation loads.
+    data, path = _two_policy_data(tmp_path)
     runner, out = CliRunner(), tmp_path / "ramps"
     args = ["pretrain", "--data", str(path), "--preset", "tiny", "--steps", "2", "--batch", "4",
             "--chunk", "1", "--out", str(out)]
@@ -356,12 +363,7 @@ def test_auto_labels_use_the_policies_only_where_the_data_name_them():
 
 
 def test_cli_pretrain_keeps_the_cpu_presets_defaults_unless_told(tmp_path):
-    data = synthetic_dataset(n=8)
-    data = make_dataset(data.observations, data.actions, data.rewards, data.costs,
-                        data.lengths, episode_info={"snapshot": np.arange(8) % 2},
-                        attrs={"task": TASK})
-    path = tmp_path / "policies.hdf5"
-    write_dataset(path, data)
+    _, path = _two_policy_data(tmp_path)
     args = ["pretrain", "--data", str(path), "--preset", "cpu", "--steps", "1", "--batch", "2",
             "--chunk", "1"]
     result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a")])

@@ -18,7 +18,8 @@ from safecdt_jax import validate as check
 _PRESETS: dict[str, dict[str, Any]] = {
     # Smallest model that still exercises every code path (multi-head, padding, LoRA); for tests.
     "tiny": dict(embed_dim=16, num_layers=1, num_heads=2, seq_len=4, lora_rank=4, lora_alpha=8.0),
-    # Default demo model (175,054 parameters for CarGoal, 138,926 for CarCircle): its default
+    # Default demo model (176,974 parameters for CarGoal, 140,846 for CarCircle, ramps included;
+    # 175,054 and 138,926 with linear tokens): its default
     # pretraining, 10,000 updates at batch 32 (pretrain.default_pretrain), takes 2.5-5 minutes on
     # a 2-core CPU at 14-24 ms per update; one batch-15 inference step takes ~1.5 ms.
     # Its cost token reads `5 - 0.1 CTG`, OSRL's `50 - CTG` divided by 10. The embedding
@@ -31,8 +32,8 @@ _PRESETS: dict[str, dict[str, Any]] = {
     # Since 2026-12-04 its return and cost tokens are 16 ramps each (edges fitted in
     # pretraining) held constant over an episode: with the pretraining defaults of
     # `pretrain.default_pretrain("cpu")` and the experts' sampled actions, the options under which
-    # its cost follows the cost target on CarGoal1, CarCircle1 and PointCircle1
-    # (docs/CDT_FINDINGS.md section 17).
+    # its cost follows the cost target on CarGoal1 and CarCircle1 (PointCircle1: 2 of 4 seeds;
+    # docs/CDT_FINDINGS.md section 17).
     "cpu": dict(embed_dim=64, num_layers=2, num_heads=4, seq_len=10, cost_scale=0.1,
                 cost_offset=5.0, token_bins=16, constant_targets=True),
     # OSRL's default CDT: 744,910 parameters for CarGoal (obs 72, act 2, episode 1000).
