@@ -63,18 +63,17 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     episode at that many steps (default: the task's time limit). `stochastic_actions` acts with
     samples of the policy (True) or its mean (False); None keeps the checkpoint's own setting
     (`CDTConfig.stochastic_actions`). Also returns the targets as `target_return` and
-    `target_cost` [n_targets] (raw units).
+    `target_cost` [n_targets] (raw units) and how the policy acted (`stochastic_actions`).
     """
     from safecdt_jax import envs
     from safecdt_jax.deploy.rollout import evaluate_targets
     from safecdt_jax.envs.dynamics import apply_dynamics
-    from safecdt_jax.pretrain.checkpoint import load_policy
+    from safecdt_jax.pretrain.checkpoint import load_policy, with_action_mode
 
     env, params = envs.make(task)
     params = apply_dynamics(params, dynamics or {})
-    policy = load_policy(ckpt, task=task)
-    cfg = policy.cfg if stochastic_actions is None else policy.cfg.replace(
-        stochastic_actions=bool(stochastic_actions))
+    policy = with_action_mode(load_policy(ckpt, task=task), stochastic_actions)
+    cfg = policy.cfg
     rets = np.array([t[0] for t in targets])  # float64: reported as given
     costs = np.array([t[1] for t in targets])
     fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, cfg, r, c,
@@ -82,7 +81,7 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     res = jax.device_get(fn(jax.random.PRNGKey(seed), rets.astype(np.float32),
                             costs.astype(np.float32)))
     return {"target_return": rets, "target_cost": costs, "returns": np.asarray(res.returns),
-            "costs": np.asarray(res.costs)}
+            "costs": np.asarray(res.costs), "stochastic_actions": cfg.stochastic_actions}
 
 
 def _ranks(values: np.ndarray) -> np.ndarray:
@@ -175,12 +174,9 @@ def evaluate_checkpoint(ckpt: str | os.PathLike, task: str, targets: list[tuple[
     """`evaluate_policy` then `summarize_evaluation`: the summary dict, with the checkpoint
     folder, seed, horizon, dynamics shift and whether the actions were sampled added (see
     `evaluation_table` to print it)."""
-    from safecdt_jax.pretrain.checkpoint import configs_from_meta, read_meta
-
     res = evaluate_policy(ckpt, task, targets, episodes, seed, horizon, dynamics,
                           stochastic_actions)
     summary = summarize_evaluation(task, res, data_median)
-    sampled = (configs_from_meta(read_meta(ckpt))[0].stochastic_actions
-               if stochastic_actions is None else bool(stochastic_actions))
     return {"checkpoint": os.fspath(ckpt), "seed": seed, "horizon": horizon,
-            "dynamics": dict(dynamics or {}), "stochastic_actions": sampled, **summary}
+            "dynamics": dict(dynamics or {}), "stochastic_actions": res["stochastic_actions"],
+            **summary}

@@ -71,13 +71,10 @@ def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None,
     return (raw units). Raises CheckpointError if the model does not fit the task."""
     from safecdt_jax import envs
     from safecdt_jax.deploy.config import DeployConfig
-    from safecdt_jax.pretrain.checkpoint import load_policy
+    from safecdt_jax.pretrain.checkpoint import load_policy, with_action_mode
 
     env, env_params = envs.make(target)
-    policy = load_policy(ckpt, task=target)
-    if stochastic_actions is not None:
-        sampled = policy.cfg.replace(stochastic_actions=bool(stochastic_actions))
-        policy = policy._replace(cfg=sampled)
+    policy = with_action_mode(load_policy(ckpt, task=target), stochastic_actions)
     cfg = DeployConfig() if cfg is None else cfg
     return env, env_params, policy, cfg, float(policy.meta["dataset"]["reference_return"])
 

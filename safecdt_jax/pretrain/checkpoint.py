@@ -204,6 +204,14 @@ def load_policy(
     return ckpt
 
 
+def with_action_mode(policy: Checkpoint, stochastic_actions: bool | None) -> Checkpoint:
+    """`policy` acting with samples of its Gaussian (True) or its mean (False) in rollouts;
+    None keeps the checkpoint's own `CDTConfig.stochastic_actions`."""
+    if stochastic_actions is None:
+        return policy
+    return policy._replace(cfg=policy.cfg.replace(stochastic_actions=bool(stochastic_actions)))
+
+
 def task_sizes(task: str) -> tuple[int, int, int] | None:
     """(obs_dim, act_dim, episode_len) of a task in `envs.NAMES`, else None (no env built)."""
     from safecdt_jax import envs
