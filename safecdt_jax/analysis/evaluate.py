@@ -73,15 +73,14 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     env, params = envs.make(task)
     params = apply_dynamics(params, dynamics or {})
     policy = with_action_mode(load_policy(ckpt, task=task), stochastic_actions)
-    cfg = policy.cfg
     rets = np.array([t[0] for t in targets])  # float64: reported as given
     costs = np.array([t[1] for t in targets])
-    fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, cfg, r, c,
+    fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, policy.cfg, r, c,
                                                   episodes, horizon=horizon))
     res = jax.device_get(fn(jax.random.PRNGKey(seed), rets.astype(np.float32),
                             costs.astype(np.float32)))
     return {"target_return": rets, "target_cost": costs, "returns": np.asarray(res.returns),
-            "costs": np.asarray(res.costs), "stochastic_actions": cfg.stochastic_actions}
+            "costs": np.asarray(res.costs), "stochastic_actions": policy.cfg.stochastic_actions}
 
 
 def _ranks(values: np.ndarray) -> np.ndarray:

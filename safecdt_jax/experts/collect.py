@@ -41,7 +41,7 @@ from safecdt_jax.experts.ppo_lag import make_train
 from safecdt_jax.paths import DEFAULT_ACTIONS
 
 SNAPSHOT_DIR = Path(__file__).parent / "snapshots"
-EXPERT_COLLECTOR_VERSION = 2  # 2: the action recording is an attribute ('actions')
+EXPERT_COLLECTOR_VERSION = 2  # 2: executed actions, unless the 'actions' attribute says otherwise
 
 # How an episode's actions are recorded: 'sampled' (the default, `paths.DEFAULT_ACTIONS`: the
 # policy's Gaussian sample clipped to the action box [-1, 1], DSRL's convention) or 'executed'
