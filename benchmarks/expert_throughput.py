@@ -5,7 +5,7 @@
 
 For each batch size, in the same run (alternated, median of `repeats`):
 - `train`: one training round of the `cpu` expert preset (every env drives one whole episode,
-  rollouts of 125 steps, one PPO update of 10 epochs x 32 minibatches after each, or
+  rollouts of 125 steps, one PPO update of 10 epochs x the preset's 8 minibatches after each, or
   `--minibatches`);
 - `rollout, sync reset`: the same episode under the same policy, no updates (what training
   costs at least): all envs reset together at the episode boundary;
@@ -100,13 +100,15 @@ def main() -> None:
     ap.add_argument("--envs", default="64,256,1024")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--minibatches", type=int, default=0,
-                    help="minibatches per epoch (0: the cpu preset's, 32)")
+                    help="minibatches per epoch (0: the cpu preset's)")
     ap.add_argument("--omnisafe", action="store_true", help="also time OmniSafe's PPOLag")
     ap.add_argument("--omnisafe-steps", type=int, default=4000)
     ap.add_argument("--omnisafe-threads", type=int, default=2)
     ap.add_argument("--out", type=Path, default=Path("benchmarks/results/expert_throughput.json"))
     args = ap.parse_args()
     batches = [int(x) for x in args.envs.split(",")]
+    from safecdt_jax.experts import expert_preset
+    cfg_minibatches = args.minibatches or expert_preset("cpu").minibatches
     programs = {}
     for n in batches:
         programs[n] = _programs(args.task, n, args.minibatches)
@@ -145,10 +147,10 @@ def main() -> None:
     write_json(args.out, {"machine": machine(), "task": args.task, "cells": cells,
                           "omnisafe": {"runs": peer, "steps_per_s": omni,
                                        "threads": args.omnisafe_threads} if peer else None,
-                          "minibatches": args.minibatches or 32, "command": command})
+                          "minibatches": cfg_minibatches, "command": command})
     write_markdown(args.out.with_suffix(".md"), "PPO-Lagrangian training throughput", command,
                    f"Env steps/s on {args.task}, `cpu` expert preset, 10 epochs x "
-                   f"{args.minibatches or 32} minibatches per update, median of "
+                   f"{cfg_minibatches} minibatches per update, median of "
                    f"{args.repeats}, alternated.\n\n{text}")
     print(text)
 

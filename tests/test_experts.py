@@ -178,6 +178,17 @@ def test_config_round_trips_json():
     assert ExpertConfig.from_json(cfg.to_json()) == cfg
 
 
+@pytest.mark.parametrize("task", ["CarGoal1", "CarCircle1", "PointCircle1", "PointGoal1"])
+def test_cpu_preset_is_what_made_the_committed_experts(task):
+    # `safecdt-jax expert` with the preset's defaults must reproduce the committed snapshots:
+    # every recorded setting but the task and the step count is the preset's.
+    from safecdt_jax.experts.collect import snapshot_path
+    from safecdt_jax.experts.export import load_snapshots
+
+    recorded = load_snapshots(snapshot_path(task))[1]["expert"]
+    preset = expert_preset("cpu", task=task, steps=recorded["steps"]).to_json()
+    assert recorded == preset
+
 def test_grid_filter_caps_bins_and_drops_costly_episodes():
     # 4 cost bins x 2 return bins over the kept range [0, 40] x [0, 10].
     costs = np.array([0, 1, 2, 3, 4, 15, 16, 35, 40, 200], float)

@@ -18,8 +18,10 @@ def expert_cmd(
     cost_limit: Annotated[str, typer.Option(
         help="Comma-separated episode-cost limits, one expert each: a number, 'none', or an "
              "anneal 'A:B' / 'A:B:begin:finish' (fractions of training).")] = "25",
-    num_envs: Annotated[int, typer.Option(min=1, help="Parallel envs per expert.")] = 128,
-    minibatches: Annotated[int, typer.Option(min=1, help="PPO minibatches per epoch.")] = 8,
+    num_envs: Annotated[int | None, typer.Option(
+        min=1, help="Parallel envs per expert (default: the preset's).")] = None,
+    minibatches: Annotated[int | None, typer.Option(
+        min=1, help="PPO minibatches per epoch (default: the preset's).")] = None,
     preset: Annotated[str, typer.Option(help="Expert preset: tiny or cpu.")] = "cpu",
     chunk: Annotated[int, typer.Option(min=1, help="Rounds (episodes) per jitted call.")] = 2,
     out: Annotated[Path | None, typer.Option(
@@ -41,8 +43,9 @@ def expert_cmd(
 
     try:
         schedules = [CostSchedule.parse(t) for t in cost_limit.split(",")]
-        cfg = expert_preset(preset, task=task, steps=steps, num_envs=num_envs,
-                            minibatches=minibatches)
+        given = {"num_envs": num_envs, "minibatches": minibatches}
+        cfg = expert_preset(preset, task=task, steps=steps,
+                            **{k: v for k, v in given.items() if v is not None})
     except ValueError as e:
         _fail(str(e))
     out = paths.cache_root() / "experts" / task if out is None else out
