@@ -82,6 +82,16 @@ def data_fingerprint(task: str, actions: str = DEFAULT_ACTIONS) -> str:
     return dataset_record(path, load_dataset(path))["fingerprint"]
 
 
+def same_experts(cell: dict) -> bool:
+    """Whether a result cell's data came from the task's committed expert snapshots (cells of
+    retrained experts are stale; the Point's cells cannot be told by their action mode, which
+    reads 'executed' whatever was asked). Cells that record no snapshot hash pass."""
+    from safecdt_jax.experts.collect import snapshot_path, snapshot_sha256
+
+    sha = cell.get("data", {}).get("snapshot_sha256")
+    return sha is None or sha == snapshot_sha256(snapshot_path(cell["task"]))
+
+
 def bar_at_20(median: float) -> float:
     """The cost the model must stay below at target 20: the data's median, or 20 if lower."""
     return max(float(median), COST_TARGETS[1])
@@ -241,10 +251,11 @@ def main() -> None:
         return r["task"], r.get("data", {}).get("actions") or "executed"
 
     # Cells without the slope are evaluated again (their cached checkpoints are reused).
-    results = [r for r in old["results"] if r["episodes"] == args.episodes and (
-        current[data_key(r)] == r.get("data_fingerprint") if data_key(r) in current else
-        r.get("data", {}).get("expert_collector_version") == EXPERT_COLLECTOR_VERSION)
-        and all("slope_per_doubling" in row for row in r["rows"])]
+    results = [r for r in old["results"] if r["episodes"] == args.episodes and same_experts(r)
+               and (current[data_key(r)] == r.get("data_fingerprint") if data_key(r) in current
+                    else r.get("data", {}).get("expert_collector_version")
+                    == EXPERT_COLLECTOR_VERSION)
+               and all("slope_per_doubling" in row for row in r["rows"])]
     done = {(r["task"], r["seed"], r.get("variant", "cpu")) for r in results}
     for task in tasks:
         for seed in (int(s) for s in args.seeds.split(",")):

@@ -7,6 +7,7 @@ from benchmarks.cost_following import (
     COST_TARGETS,
     bar_at_20,
     doubling_slope,
+    same_experts,
     trained_variant,
     variant_name,
 )
@@ -41,3 +42,14 @@ def test_acting_stochastically_shares_the_pretrained_checkpoint():
     assert variant_name(variant) == "cpu+actions=sampled+stochastic_actions=True"
     assert variant_name(trained_variant(variant)) == "cpu+actions=sampled"
     assert trained_variant({"token_bins": 16}) == {"token_bins": 16}
+
+
+def test_cells_of_retrained_experts_are_stale():
+    from safecdt_jax.experts.collect import snapshot_path, snapshot_sha256
+
+    committed = snapshot_sha256(snapshot_path("PointCircle1"))
+    # The Point's cells record 'executed' whatever was asked, so the hash must decide.
+    cell = {"task": "PointCircle1", "data": {"actions": "executed", "snapshot_sha256": committed}}
+    assert same_experts(cell)
+    assert not same_experts({**cell, "data": {**cell["data"], "snapshot_sha256": "0" * 64}})
+    assert same_experts({"task": "PointCircle1", "data": {}})  # scripted data: no hash
