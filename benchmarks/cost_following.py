@@ -4,7 +4,8 @@
         [--seeds 0,1,2,3] [--episodes 20] [--token-bins N] [--token-rates]
         [--constant-targets] [--labels episode|policy|auto] [--scale-actions]
         [--standardize-obs] [--relabel-percent P] [--c0 C] [--actions sampled]
-        [--stochastic-actions] [--out PATH]
+        [--stochastic-actions] [--returns ratios|frontier] [--set FIELD=VALUE ...]
+        [--out PATH]
 
 For each source task: the default source data (`ensure_source_data`: the committed experts'
 snapshots, grid-filtered as DSRL does), a `cpu`-preset CDT pretrained with each seed at the
@@ -16,8 +17,12 @@ data have median 0: 60% of their episodes cost nothing, and no policy's mean goe
 The flags after `--episodes` pretrain a variant of the `cpu` preset (docs/CDT_FINDINGS.md
 sections 12-15); `--actions sampled` uses source data that record the experts' sampled
 actions instead of the executed ones (section 16); `--stochastic-actions` evaluates the same
-checkpoints acting with samples of the CDT's Gaussian head (section 17). Each variant's cells
-are kept apart.
+checkpoints acting with samples of the CDT's Gaussian head (section 17). `--returns frontier`
+evaluates the same checkpoints with each cost target c paired with its own return, the data's
+frontier at c (the 90th percentile of the returns of the episodes costing at most c), as OSRL
+pairs each cost target with a return the data show feasible, instead of one ratio of R_ref for
+all four (section 20). `--set steps=20000` (repeatable) overrides any other `PretrainConfig` or
+`CDTConfig` field of the `cpu` preset. Each variant's cells are kept apart.
 Results go to the JSON after every (task, seed), atomically, and a rerun skips what is
 there, so an interrupted run continues.
 The default JSON is `benchmarks/results/cost_following.json` at 20 episodes per target and
@@ -29,6 +34,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import functools
 import json
 import sys
 import time
@@ -41,6 +47,28 @@ from safecdt_jax.paths import DEFAULT_ACTIONS
 
 COST_TARGETS = (10.0, 20.0, 40.0, 80.0)
 RETURN_RATIOS = (0.5, 1.0)
+FRONTIER_QUANTILE = 90.0
+
+
+def frontier_returns(returns, costs, targets=COST_TARGETS, q: float = FRONTIER_QUANTILE
+                     ) -> list[float]:
+    """The data's return frontier at each cost target: for target c, the `q`-th percentile of
+    the episode returns of the episodes whose cost is at most c (a high quantile rather than
+    the best episode, which on a wide data set is one lucky layout).
+
+    `returns`, `costs`: per-episode sums (reward and cost steps). Raises ValueError when a
+    target has no episode at or below it, where no return is feasible."""
+    returns, costs = np.asarray(returns, np.float64), np.asarray(costs, np.float64)
+    if returns.shape != costs.shape or returns.ndim != 1:
+        raise ValueError(f"frontier_returns needs per-episode returns and costs of one shape, "
+                         f"got {returns.shape} and {costs.shape}")
+    out = []
+    for c in targets:
+        under = returns[costs <= c]
+        if under.size == 0:
+            raise ValueError(f"frontier_returns: no episode of the data costs at most {c:g}")
+        out.append(float(np.percentile(under, q)))
+    return out
 
 
 def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
@@ -71,25 +99,61 @@ def doubling_slope(targets, costs, draws: int = 2000, seed: int = 0) -> dict:
     return {"slope": fit(y.mean(axis=1)), "low": float(low), "high": float(high)}
 
 
-def data_fingerprint(task: str, actions: str = DEFAULT_ACTIONS) -> str:
-    """The fingerprint (`dataset_record`) of `task`'s source data with this action recording,
-    collecting it if needed: a cell measured on other data is stale."""
+def data_fingerprint(task: str, actions: str = DEFAULT_ACTIONS) -> tuple[str, str]:
+    """The action recording the file of `task`'s source data asked with `actions` holds (the
+    Point's experts record 'executed' whatever is asked; files without the attribute are
+    'executed') and its fingerprint (`dataset_record`), collecting it if needed: a cell
+    measured on other data is stale. Cells are keyed by their recorded mode, so this is the
+    key their fingerprint is checked under."""
     from safecdt_jax.data import load_dataset
+    from safecdt_jax.data.collect import file_attrs
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pretrain.run import dataset_record
 
     path = ensure_source_data(task, actions=actions)
-    return dataset_record(path, load_dataset(path))["fingerprint"]
+    recorded = (file_attrs(path) or {}).get("actions") or "executed"
+    return recorded, dataset_record(path, load_dataset(path))["fingerprint"]
+
+
+@functools.cache
+def committed_snapshot_sha256(task: str) -> str:
+    """SHA-256 of `task`'s committed expert snapshots, read once per process."""
+    from safecdt_jax.experts.collect import snapshot_path, snapshot_sha256
+
+    return snapshot_sha256(snapshot_path(task))
 
 
 def same_experts(cell: dict) -> bool:
     """Whether a result cell's data came from the task's committed expert snapshots (cells of
-    retrained experts are stale; the Point's cells cannot be told by their action mode, which
-    reads 'executed' whatever was asked). Cells that record no snapshot hash pass."""
-    from safecdt_jax.experts.collect import snapshot_path, snapshot_sha256
-
+    retrained experts are stale, a second guard beside the data fingerprint). Cells that
+    record no snapshot hash pass."""
     sha = cell.get("data", {}).get("snapshot_sha256")
-    return sha is None or sha == snapshot_sha256(snapshot_path(cell["task"]))
+    return sha is None or sha == committed_snapshot_sha256(cell["task"])
+
+
+def parse_overrides(items: list[str]) -> dict:
+    """`["steps=20000", "embed_dim=96"]` -> `{"steps": 20000, "embed_dim": 96}`: values read as
+    int, float or bool where they parse as one, else kept as text. Raises ValueError naming an
+    item without '=' or a field that neither `PretrainConfig` nor `CDTConfig` has."""
+    from safecdt_jax.model import CDTConfig
+    from safecdt_jax.pretrain.config import PretrainConfig
+
+    fields = {f.name for cls in (PretrainConfig, CDTConfig) for f in dataclasses.fields(cls)}
+    out = {}
+    for item in items:
+        key, eq, text = item.partition("=")
+        if not eq or key not in fields:
+            raise ValueError(f"--set {item!r}: expected FIELD=VALUE with a PretrainConfig or "
+                             f"CDTConfig field")
+        value: object = {"true": True, "false": False}.get(text.lower(), text)
+        for kind in (int, float):
+            if isinstance(value, str):
+                try:
+                    value = kind(text)
+                except ValueError:
+                    pass
+        out[key] = value
+    return out
 
 
 def bar_at_20(median: float) -> float:
@@ -102,7 +166,7 @@ def variant_name(variant: dict) -> str:
     return "+".join(["cpu", *(f"{k}={v}" for k, v in sorted(variant.items()))])
 
 
-EVALUATION_ONLY = ("stochastic_actions",)
+EVALUATION_ONLY = ("stochastic_actions", "returns")
 
 
 def trained_variant(variant: dict) -> dict:
@@ -117,10 +181,11 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
     `variant`: `actions` (the source data's action recording), `PretrainConfig` fields (e.g.
     `labels`, `relabel_percent`, `c0`) and `CDTConfig` fields (the rest: `token_bins`,
     `token_rates`, `constant_targets`) that differ from the `cpu` preset. `stochastic_actions`
-    is an evaluation choice: it shares the checkpoint of the variant without it."""
+    and `returns` ("frontier": each cost target at the data's frontier return) are evaluation
+    choices: they share the checkpoint of the variant without them."""
     from safecdt_jax import paths
-    from safecdt_jax.analysis.evaluate import evaluate_checkpoint
-    from safecdt_jax.data import summarize_dataset
+    from safecdt_jax.analysis.evaluate import evaluate_checkpoint, spearman
+    from safecdt_jax.data import load_dataset, summarize_dataset
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pretrain.checkpoint import read_meta
     from safecdt_jax.pretrain.config import PretrainConfig
@@ -139,20 +204,28 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
     ckpt = ensure_checkpoint(data, task, "cpu", seed=seed, out=out, overwrite=True,
                              progress=False, model_overrides=model, pretrain_overrides=pre)
     r_ref = float(read_meta(ckpt)["dataset"]["reference_return"])
-    targets = [(ratio * r_ref, c) for ratio in RETURN_RATIOS for c in COST_TARGETS]
+    if variant.get("returns") == "frontier":
+        episodes_of = load_dataset(data)
+        groups = {"frontier": [(r, c) for r, c in zip(
+            frontier_returns(episodes_of.rewards.sum(1), episodes_of.costs.sum(1)),
+            COST_TARGETS, strict=True)]}
+    else:
+        groups = {ratio: [(ratio * r_ref, c) for c in COST_TARGETS] for ratio in RETURN_RATIOS}
+    targets = [t for group in groups.values() for t in group]
     summary = evaluate_checkpoint(ckpt, task, targets, episodes, seed=1000 + seed,
                                   data_median=median,
                                   stochastic_actions=variant.get("stochastic_actions"))
     rows = []
-    for ratio, follow in zip(RETURN_RATIOS, summary["cost_following"], strict=True):
-        index = [i for i, r in enumerate(summary["rows"])
-                 if r["target_return"] == follow["target_return"]]
+    for g, (label, group) in enumerate(groups.items()):
+        index = list(range(g * len(COST_TARGETS), (g + 1) * len(COST_TARGETS)))
         at = [summary["rows"][i] for i in index]
         costs = [r["mean_cost"] for r in at]
-        rho = follow["spearman"]
+        rho = spearman(COST_TARGETS, costs)
+        rho = None if np.isnan(rho) else rho
         below = costs[COST_TARGETS.index(20.0)] < bar_at_20(median)
         episode_costs = np.asarray(summary["costs"])[index]
-        rows.append({"return_ratio": ratio, "target_return": follow["target_return"],
+        rows.append({"return_ratio": label, "target_return": group[0][0],
+                     "target_returns": [r for r, _ in group],
                      "mean_costs": costs, "mean_returns": [r["mean_return"] for r in at],
                      "episode_costs": episode_costs.round(3).tolist(),
                      "slope_per_doubling": doubling_slope(COST_TARGETS, episode_costs,
@@ -175,6 +248,13 @@ def _slope(row: dict) -> str:
     return "n/a" if s is None else f"{s['slope']:+.1f} ({s['low']:+.1f}, {s['high']:+.1f})"
 
 
+def return_label(row: dict) -> str:
+    """A row's return target as the table prints it: "0.5 R_ref", or the frontier's returns."""
+    if row["return_ratio"] == "frontier":
+        return "frontier " + "/".join(f"{r:.1f}" for r in row["target_returns"])
+    return f"{row['return_ratio']:g} R_ref"
+
+
 def table(results: list[dict]) -> str:
     """One markdown row per (task, seed, return target), then a pass count per task."""
     head = ["task", "variant", "seed", "return target",
@@ -185,17 +265,18 @@ def table(results: list[dict]) -> str:
         for r in res["rows"]:
             rho = "n/a" if r["spearman"] is None else f"{r['spearman']:.2f}"
             rows.append([res["task"], res.get("variant", "cpu"), res["seed"],
-                         f"{r['return_ratio']:g} R_ref",
+                         return_label(r),
                          *[f"{c:.1f}" for c in r["mean_costs"]], rho, _slope(r),
                          f"{res['data_median_cost']:.1f}", "yes" if r["below_median_at_20"]
                          else "no", "PASS" if r["passes"] else "fail"])
     lines = [markdown_table(head, rows), ""]
     for task, name in dict.fromkeys((r["task"], r.get("variant", "cpu")) for r in results):
         mine = [r for r in results if r["task"] == task and r.get("variant", "cpu") == name]
-        for ratio in RETURN_RATIOS:
+        for ratio in dict.fromkeys(row["return_ratio"] for r in mine for row in r["rows"]):
             n = sum(row["passes"] for r in mine for row in r["rows"]
                     if row["return_ratio"] == ratio)
-            lines.append(f"- {task}, {name}, return target {ratio:g} R_ref: {n} of {len(mine)} "
+            label = "the frontier" if ratio == "frontier" else f"{ratio:g} R_ref"
+            lines.append(f"- {task}, {name}, return target {label}: {n} of {len(mine)} "
                          f"seeds pass")
     return "\n".join(lines)
 
@@ -223,6 +304,11 @@ def main() -> None:
                     help="the source data's action recording (docs/EXPERTS.md)")
     ap.add_argument("--stochastic-actions", action=on_off,
                     help="act with samples of the CDT's Gaussian head (--no-: its mean)")
+    ap.add_argument("--returns", choices=("ratios", "frontier"), default="ratios",
+                    help="return targets: half and all of R_ref, or each cost target's "
+                         "frontier return in the data")
+    ap.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                    help="any other PretrainConfig or CDTConfig field, e.g. steps=20000")
     ap.add_argument("--out", type=Path, default=None)
     args = ap.parse_args()
     if args.out is None:
@@ -237,15 +323,20 @@ def main() -> None:
                                  ("relabel_percent", args.relabel_percent),
                                  ("c0", args.c0),
                                  ("stochastic_actions", args.stochastic_actions),
+                                 ("returns", None if args.returns == "ratios" else args.returns),
                                  ("actions",
                                   None if args.actions == DEFAULT_ACTIONS else args.actions))
                if v is not None}
+    variant.update(parse_overrides(args.set))
     name = variant_name(variant)
     old = json.loads(args.out.read_text()) if args.out.exists() else {"results": []}
 
     # Cells of other data (an older collector, re-trained experts) are measured again.
     tasks = args.tasks.split(",")
-    current = {(task, args.actions): data_fingerprint(task, args.actions) for task in tasks}
+    current = {}
+    for task in tasks:
+        recorded, fingerprint = data_fingerprint(task, args.actions)
+        current[task, recorded] = fingerprint
 
     def data_key(r: dict) -> tuple[str, str]:
         return r["task"], r.get("data", {}).get("actions") or "executed"

@@ -7,6 +7,8 @@ from benchmarks.cost_following import (
     COST_TARGETS,
     bar_at_20,
     doubling_slope,
+    frontier_returns,
+    return_label,
     same_experts,
     trained_variant,
     variant_name,
@@ -53,3 +55,20 @@ def test_cells_of_retrained_experts_are_stale():
     assert same_experts(cell)
     assert not same_experts({**cell, "data": {**cell["data"], "snapshot_sha256": "0" * 64}})
     assert same_experts({"task": "PointCircle1", "data": {}})  # scripted data: no hash
+
+
+def test_frontier_returns_by_hand():
+    returns = np.array([10.0, 20.0, 30.0, 40.0, 50.0])
+    costs = np.array([0.0, 5.0, 15.0, 30.0, 100.0])
+    # Cost <= 10: returns 10, 20 -> 90th percentile 19; <= 20: 10-30 -> 28; <= 40 and 80: 37.
+    assert frontier_returns(returns, costs) == pytest.approx([19.0, 28.0, 37.0, 37.0])
+    assert frontier_returns(returns, costs, q=100.0) == pytest.approx([20.0, 30.0, 40.0, 40.0])
+    with pytest.raises(ValueError, match="no episode of the data costs at most 10"):
+        frontier_returns(returns, costs + 11.0)
+    with pytest.raises(ValueError, match="one shape"):
+        frontier_returns(returns, costs[:3])
+    row = {"return_ratio": "frontier", "target_returns": [19.0, 28.0, 37.0, 37.0]}
+    assert return_label(row) == "frontier 19.0/28.0/37.0/37.0"
+    assert return_label({"return_ratio": 0.5}) == "0.5 R_ref"
+    assert variant_name(trained_variant({"token_bins": 16, "returns": "frontier"})) == \
+        "cpu+token_bins=16"
