@@ -194,7 +194,8 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
     start = time.perf_counter()
     variant = dict(variant or {})
     data = ensure_source_data(task, actions=variant.get("actions", DEFAULT_ACTIONS))
-    median = summarize_dataset(data)["cost_median"]
+    dataset = load_dataset(data)  # read once: the summary and the frontier share it
+    median = summarize_dataset(dataset)["cost_median"]
     pre_fields = {f.name for f in dataclasses.fields(PretrainConfig)}
     pre = {k: v for k, v in variant.items() if k in pre_fields}
     model = {k: v for k, v in trained_variant(variant).items() if k not in pre and k != "actions"}
@@ -205,9 +206,8 @@ def run_one(task: str, seed: int, episodes: int, variant: dict | None = None) ->
                              progress=False, model_overrides=model, pretrain_overrides=pre)
     r_ref = float(read_meta(ckpt)["dataset"]["reference_return"])
     if variant.get("returns") == "frontier":
-        episodes_of = load_dataset(data)
         groups = {"frontier": [(r, c) for r, c in zip(
-            frontier_returns(episodes_of.rewards.sum(1), episodes_of.costs.sum(1)),
+            frontier_returns(dataset.rewards.sum(1), dataset.costs.sum(1)),
             COST_TARGETS, strict=True)]}
     else:
         groups = {ratio: [(ratio * r_ref, c) for c in COST_TARGETS] for ratio in RETURN_RATIOS}
