@@ -10,14 +10,18 @@ import pytest
 from safecdt_jax.model import (
     CDTConfig,
     OptimConfig,
+    batch_gradients,
     cdt_loss,
     init_cdt,
     init_train_state,
     learning_rate_schedule,
+    loss_normalisers,
     make_optimizer,
     make_train_step,
+    micro_batches,
     temperature_loss,
 )
+from safecdt_jax.pretrain import PretrainConfig
 
 CFG = CDTConfig.preset("tiny", obs_dim=5, act_dim=2, episode_len=30)
 K = CFG.seq_len
@@ -177,3 +181,50 @@ def test_training_steps_reduce_loss():
     for k in keys:
         state2, _ = step(state2, batch, k)
     assert all(jax.tree.leaves(jax.tree.map(np.array_equal, state.params, state2.params)))
+
+
+def _close(a, b, rtol=2e-5, atol=1e-6):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=rtol, atol=atol)
+
+
+def test_micro_batches_sum_to_the_whole_batch(params):
+    # Uneven padding: each slice has its own valid count, so slices averaged on their own
+    # would not add up to the whole batch's loss; divided by the batch's counts they do.
+    batch = make_batch(4, lengths=(K, K, 3, 1))
+    grads_fn = jax.jit(batch_gradients, static_argnums=(2, 5))
+    (loss, aux), grads = grads_fn(params, LOG_T, CFG, batch, None, 0)
+    (loss2, aux2), grads2 = grads_fn(params, LOG_T, CFG, batch, None, 2)
+    _close((loss, aux, grads), (loss2, aux2, grads2))
+    halves = [{k: v[i:i + 2] for k, v in batch.items()} for i in (0, 2)]
+    own = [float(loss_normalisers(h)["valid"]) for h in halves]
+    assert own[0] != own[1]  # the slices' own averages would weigh steps unequally
+    norms = loss_normalisers(batch)
+    parts = [loss_fn(params, LOG_T, CFG, h, None, norms)[0] for h in halves]
+    np.testing.assert_allclose(float(parts[0] + parts[1]), float(loss), rtol=1e-5)
+
+
+def test_micro_batched_train_step_is_deterministic_and_learns():
+    optim = OptimConfig(learning_rate=3e-3, warmup_steps=1)
+    step = jax.jit(make_train_step(CFG, optim, micro_batch=2))
+    batch = make_batch(8, lengths=(4, 2, 3, K))
+    runs = []
+    for _ in range(2):
+        state = init_train_state(jax.random.key(0), CFG, optim)
+        before, _ = loss_fn(state.params, state.log_temperature, CFG, batch, None)
+        for k in jax.random.split(jax.random.key(1), 20):
+            state, aux = step(state, batch, k)
+        runs.append(state)
+    after, _ = loss_fn(state.params, state.log_temperature, CFG, batch, None)
+    assert float(after) < float(before) - 0.1
+    np.testing.assert_allclose(aux["temperature"], np.exp(runs[0].log_temperature), rtol=0.01)
+    assert all(jax.tree.leaves(jax.tree.map(np.array_equal, runs[0].params, runs[1].params)))
+
+
+def test_micro_batch_splits_into_the_fewest_equal_passes():
+    assert [micro_batches(2048, m) for m in (0, 256, 2048, 4096, 1000)] == [1, 8, 1, 1, 4]
+    assert micro_batches(300, 256) == 2 and micro_batches(7, 2) == 7
+    with pytest.raises(ValueError, match="micro_batch must be >= 0, got -1"):
+        micro_batches(32, -1)
+    with pytest.raises(ValueError, match=r"micro_batch must be an integer >= 0, got -2"):
+        PretrainConfig(micro_batch=-2)

@@ -25,12 +25,30 @@ def gaussian_entropy(log_std: jax.Array) -> jax.Array:
     return 0.5 + _HALF_LOG_2PI + log_std
 
 
+def loss_normalisers(batch: Mapping[str, jax.Array]) -> dict[str, jax.Array]:
+    """The denominators of `cdt_loss`'s averages over a whole batch (counts, float32).
+
+    `valid`: real steps (at least 1); `positions`: all B*K window positions; `pairs`: steps t
+    with t and t+1 both real (at least 1; the next-state head's targets). A loss over a slice
+    of the batch divided by these is that slice's share of the whole batch's loss, so the
+    slices' losses and gradients add up to the whole batch's.
+    """
+    mask = jnp.asarray(batch["mask"]).astype(jnp.float32)
+    pair = mask[:, :-1] * mask[:, 1:]
+    return {
+        "valid": jnp.maximum(mask.sum(), 1.0),
+        "positions": jnp.asarray(mask.size, jnp.float32),
+        "pairs": jnp.maximum(pair.sum(), 1.0),
+    }
+
+
 def cdt_loss(
     params: Params,
     log_temperature: jax.Array,
     cfg: CDTConfig,
     batch: Mapping[str, jax.Array],
     key: jax.Array | None,
+    norms: Mapping[str, jax.Array] | None = None,
 ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """OSRL's CDT loss `act_loss + cost_loss_weight * cost_loss + state_loss_weight * state_loss`.
 
@@ -42,6 +60,8 @@ def cdt_loss(
             is class 1). Targets: `actions` for the action head, `states[:, 1:]` for the
             next-state head.
         key: dropout key; None evaluates without dropout.
+        norms: `loss_normalisers` of the batch this one is a slice of (micro-batching); None
+            averages over this batch itself.
 
     Returns:
         `(loss, aux)`; aux holds `act_loss`, `cost_loss`, `state_loss`, `log_likelihood` and
@@ -53,7 +73,9 @@ def cdt_loss(
     """
     out = apply_cdt(params, cfg, batch, train=key is not None, key=key)
     mask = jnp.asarray(batch["mask"]).astype(jnp.float32)  # [B, K]
-    n_valid = jnp.maximum(mask.sum(), 1.0)
+    # Without `norms` the expressions are the original ones (same program, same bits).
+    n_valid = jnp.maximum(mask.sum(), 1.0) if norms is None else norms["valid"]
+    positions = mask.size if norms is None else norms["positions"]
     temperature = jax.lax.stop_gradient(jnp.exp(log_temperature))
 
     # The mask multiplies the per-element terms, so whatever the padded actions are, they
@@ -69,7 +91,7 @@ def cdt_loss(
     labels = (jnp.asarray(batch["costs"]) > 0).astype(jnp.int32)  # binarise: OSRL needs {0, 1}
     logp = out["cost_log_probs"]
     nll = -jnp.take_along_axis(logp, labels[..., None], axis=-1)[..., 0]
-    cost_loss = (nll * mask).sum() / mask.size
+    cost_loss = (nll * mask).sum() / positions
     correct = (jnp.argmax(logp, axis=-1) == labels).astype(jnp.float32)
     cost_accuracy = (correct * mask).sum() / n_valid
 
@@ -80,7 +102,8 @@ def cdt_loss(
         pair = mask[:, :-1] * mask[:, 1:]
         target = jnp.asarray(batch["states"], jnp.float32)[:, 1:]
         err = jnp.where(pair[..., None] > 0, out["next_state"][:, :-1] - target, 0.0)
-        state_loss = (err * err).sum() / (jnp.maximum(pair.sum(), 1.0) * cfg.obs_dim)
+        n_pairs = jnp.maximum(pair.sum(), 1.0) if norms is None else norms["pairs"]
+        state_loss = (err * err).sum() / (n_pairs * cfg.obs_dim)
         loss = loss + cfg.state_loss_weight * state_loss
 
     aux = {

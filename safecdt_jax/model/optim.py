@@ -13,7 +13,7 @@ import optax
 
 from safecdt_jax.model.cdt import Params, init_cdt
 from safecdt_jax.model.config import CDTConfig
-from safecdt_jax.model.loss import cdt_loss, temperature_loss
+from safecdt_jax.model.loss import cdt_loss, loss_normalisers, temperature_loss
 
 
 @dataclass(frozen=True)
@@ -102,20 +102,74 @@ def init_train_state(
     )
 
 
+def micro_batches(size: int, micro_batch: int) -> int:
+    """How many equal passes a batch of `size` windows is split into: the fewest whose passes
+    hold at most `micro_batch` windows each (0: one pass)."""
+    if micro_batch < 0:
+        raise ValueError(f"micro_batch must be >= 0, got {micro_batch}")
+    if micro_batch == 0 or size <= micro_batch:
+        return 1
+    return next(n for n in range(-(-size // micro_batch), size + 1) if size % n == 0)
+
+
+def batch_gradients(
+    params: Params,
+    log_temperature: jax.Array,
+    cfg: CDTConfig,
+    batch: Mapping[str, jax.Array],
+    key: jax.Array | None,
+    micro_batch: int = 0,
+) -> tuple[tuple[jax.Array, dict[str, jax.Array]], Params]:
+    """`((loss, aux), grads)` of `cdt_loss` over `batch`, in passes of at most `micro_batch`.
+
+    A batch no larger than `micro_batch` (or `micro_batch` 0) is one `value_and_grad` pass.
+    A larger one is split into `micro_batches` equal slices; a `lax.scan` runs one pass per
+    slice, each divided by the whole batch's `loss_normalisers`, and sums them: the same loss,
+    aux and gradient up to float summation order, with the activations of only one slice alive
+    at a time (faster where a whole batch's activations spill the caches:
+    docs/PERFORMANCE.md). Slice `i` draws its dropout with `fold_in(key, i)`, so the dropout
+    bits differ from one whole-batch pass.
+    """
+    grad_fn = jax.value_and_grad(cdt_loss, has_aux=True)
+    size = jnp.shape(batch["mask"])[0]
+    n = micro_batches(size, micro_batch)
+    if n == 1:
+        return grad_fn(params, log_temperature, cfg, batch, key)
+    norms = loss_normalisers(batch)
+    slices = {k: jnp.reshape(v, (n, size // n, *jnp.shape(v)[1:])) for k, v in batch.items()}
+
+    def one(i, part):
+        k = None if key is None else jax.random.fold_in(key, i)
+        return grad_fn(params, log_temperature, cfg, part, k, norms)
+
+    def body(total, xs):
+        return jax.tree.map(jnp.add, total, one(*xs)), None
+
+    first = jax.eval_shape(one, 0, jax.tree.map(lambda v: v[0], slices))
+    zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), first)
+    ((loss, aux), grads), _ = jax.lax.scan(body, zeros, (jnp.arange(n), slices))
+    # Every slice reports the same temperature; the sum counts it n times.
+    aux = {**aux, "temperature": aux["temperature"] / n}
+    return (loss, aux), grads
+
+
 def make_train_step(
-    cfg: CDTConfig, optim: OptimConfig | None = None
+    cfg: CDTConfig, optim: OptimConfig | None = None, micro_batch: int = 0
 ) -> Callable[[TrainState, Mapping[str, jax.Array], jax.Array], tuple[TrainState, dict]]:
     """A pure `step(state, batch, key) -> (state, aux)` (wrap it in `jax.jit`).
 
     As in OSRL: one AdamW step on `cdt_loss`, then one Adam step on the temperature loss using
     the entropy of the same forward pass. `aux` is `cdt_loss`'s plus `loss` and
-    `temperature_loss`.
+    `temperature_loss`. With `micro_batch` > 0 a larger batch's gradient is computed in passes
+    of at most that many windows (`batch_gradients`); the optimiser takes one step on the
+    whole batch either way.
     """
     txs = make_optimizer(optim)
 
     def step(state: TrainState, batch: Mapping[str, jax.Array], key: jax.Array):
-        grad_fn = jax.value_and_grad(cdt_loss, has_aux=True)
-        (loss, aux), grads = grad_fn(state.params, state.log_temperature, cfg, batch, key)
+        (loss, aux), grads = batch_gradients(
+            state.params, state.log_temperature, cfg, batch, key, micro_batch
+        )
         updates, opt_state = txs.model.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
 

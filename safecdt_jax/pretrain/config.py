@@ -18,6 +18,10 @@ class PretrainConfig:
     Attributes:
         steps: total optimiser updates (OSRL: 100,000; see `default_pretrain` for the presets).
         batch_size: K-step windows per update (OSRL: 2048; far too slow on a CPU).
+        micro_batch: the most windows per forward/backward pass. A larger batch is split into
+            the fewest equal passes that fit, and the update sums their gradients before its
+            one optimiser step (`model.batch_gradients`); 0 is always one pass. The same update
+            up to float summation order, except that each pass draws its own dropout masks.
         chunk: updates per jitted call, one `lax.scan`; the host only sees the state (progress
             bar, checkpoints) between chunks. Larger chunks amortise dispatch, smaller ones give a
             finer progress bar and checkpoint grid.
@@ -54,6 +58,7 @@ class PretrainConfig:
 
     steps: int = 10_000
     batch_size: int = 32
+    micro_batch: int = 0
     chunk: int = 100
     seed: int = 0
     c0: float = 70.0
@@ -67,7 +72,7 @@ class PretrainConfig:
 
     def __post_init__(self) -> None:
         check.integers(self, "steps", "batch_size", "chunk", "max_to_keep")
-        check.integers(self, "seed", "checkpoint_every", minimum=0)
+        check.integers(self, "seed", "checkpoint_every", "micro_batch", minimum=0)
         check.positive(self, "c0")
         check.booleans(self, "relabel", "scale_actions", "standardize_obs")
         check.positive(self, "relabel_percent")

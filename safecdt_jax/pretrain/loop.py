@@ -90,9 +90,10 @@ def make_update(
     """One pretraining update `(state, key, data, weights) -> (state, aux)` (pure, not jitted).
 
     Draws `cfg.batch_size` windows of `cdt_cfg.seq_len` steps with update key
-    `fold_in(key, state.step)`, then takes `make_train_step`'s AdamW + temperature step.
+    `fold_in(key, state.step)`, then takes `make_train_step`'s AdamW + temperature step (its
+    gradient in passes of `cfg.micro_batch` windows when that is set).
     """
-    train_step = make_train_step(cdt_cfg, optim)
+    train_step = make_train_step(cdt_cfg, optim, cfg.micro_batch)
 
     def update(state: TrainState, key: jax.Array, data: TrainData, weights: jax.Array):
         k_batch, k_dropout = jax.random.split(jax.random.fold_in(key, state.step))
