@@ -45,6 +45,7 @@ from benchmarks.common import (
 )
 
 OUT = Path("benchmarks/results/update_profile.json")
+UPDATES = ("update", "update, micro-batched")  # the whole-update programs (vs OSRL's step)
 
 
 def programs(preset: str, batch: int, micro_batch: int = 0) -> dict:
@@ -187,7 +188,7 @@ def main() -> None:
     for batch in (int(b) for b in args.batches.split(",")):
         progs = programs(args.preset, batch, args.micro_batch)
         if not args.pieces:
-            progs = {k: v for k, v in progs.items() if k in ("update", "update, micro-batched")}
+            progs = {k: v for k, v in progs.items() if k in UPDATES}
         cost = xla_cost(*progs["update"])
         families = op_breakdown(*progs["update"])
         times = {}
@@ -198,7 +199,7 @@ def main() -> None:
         cell = {"batch": batch, "ms": times, "xla": cost, "families_ms": families,
                 "update_gflop_per_s": cost["gflop"] / (times["update"] / 1e3)}
         if peer is not None:  # alternated: OSRL's step, then each of our updates
-            ours_names = [k for k in ("update", "update, micro-batched") if k in progs]
+            ours_names = [k for k in UPDATES if k in progs]
             steps = max(1, 512 // batch)
             theirs, ours = [], {k: [] for k in ours_names}
             for _ in range(args.repeats):

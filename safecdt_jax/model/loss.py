@@ -73,9 +73,8 @@ def cdt_loss(
     """
     out = apply_cdt(params, cfg, batch, train=key is not None, key=key)
     mask = jnp.asarray(batch["mask"]).astype(jnp.float32)  # [B, K]
-    # Without `norms` the expressions are the original ones (same program, same bits).
-    n_valid = jnp.maximum(mask.sum(), 1.0) if norms is None else norms["valid"]
-    positions = mask.size if norms is None else norms["positions"]
+    norms = loss_normalisers(batch) if norms is None else norms
+    n_valid = norms["valid"]
     temperature = jax.lax.stop_gradient(jnp.exp(log_temperature))
 
     # The mask multiplies the per-element terms, so whatever the padded actions are, they
@@ -91,7 +90,7 @@ def cdt_loss(
     labels = (jnp.asarray(batch["costs"]) > 0).astype(jnp.int32)  # binarise: OSRL needs {0, 1}
     logp = out["cost_log_probs"]
     nll = -jnp.take_along_axis(logp, labels[..., None], axis=-1)[..., 0]
-    cost_loss = (nll * mask).sum() / positions
+    cost_loss = (nll * mask).sum() / norms["positions"]
     correct = (jnp.argmax(logp, axis=-1) == labels).astype(jnp.float32)
     cost_accuracy = (correct * mask).sum() / n_valid
 
@@ -102,8 +101,7 @@ def cdt_loss(
         pair = mask[:, :-1] * mask[:, 1:]
         target = jnp.asarray(batch["states"], jnp.float32)[:, 1:]
         err = jnp.where(pair[..., None] > 0, out["next_state"][:, :-1] - target, 0.0)
-        n_pairs = jnp.maximum(pair.sum(), 1.0) if norms is None else norms["pairs"]
-        state_loss = (err * err).sum() / (n_pairs * cfg.obs_dim)
+        state_loss = (err * err).sum() / (norms["pairs"] * cfg.obs_dim)
         loss = loss + cfg.state_loss_weight * state_loss
 
     aux = {
