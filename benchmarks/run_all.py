@@ -114,18 +114,25 @@ def compare_env(sg: Peer, ours, tasks, batches, repeats: int) -> list[dict]:
     return rows
 
 
-def compare_train(osrl: Peer, ours, batches, repeats: int) -> list[dict]:
-    """(2) One CDT update (`osrl` preset, CarGoal sizes): OSRL's train_one_step vs our chunk."""
+def compare_train(osrl: Peer, ours, batches, repeats: int, micro_batch: int = 256) -> list[dict]:
+    """(2) One CDT update (`osrl` preset, CarGoal sizes): OSRL's train_one_step vs our chunk.
+
+    A batch larger than `micro_batch` is also timed micro-batched (the gradient in passes of
+    `micro_batch` windows, `PretrainConfig.micro_batch`), in the same alternation."""
     rows = []
     for batch in batches:
         steps = max(1, 512 // batch)  # about a second of work per call on either side
-        run = ours.make_train("CarGoal1", batch, steps)
+        runs = {"ours": ours.make_train("CarGoal1", batch, steps)}
+        if batch > micro_batch:
+            runs["micro"] = ours.make_train("CarGoal1", batch, steps, micro_batch)
         res = alternate(lambda b=batch, s=steps: osrl("train", batch=b, steps=s,
-                                                      **dims("CarGoal1")), {"ours": run}, repeats)
-        peer_ms = [1e3 * a["seconds"] / a["steps"] for a in res["peer"]]
-        our_ms = [1e3 * a["seconds"] / a["steps"] for a in res["ours"]]
-        rows.append({"batch": batch, "steps_per_call": steps, "peer_ms": stats(peer_ms),
-                     "ours_ms": stats(our_ms), "speedup": pair_ratios(peer_ms, our_ms)})
+                                                      **dims("CarGoal1")), runs, repeats)
+        ms = {k: [1e3 * a["seconds"] / a["steps"] for a in v] for k, v in res.items()}
+        rows.append({"batch": batch, "steps_per_call": steps, "peer_ms": stats(ms["peer"]),
+                     "ours_ms": stats(ms["ours"]), "speedup": pair_ratios(ms["peer"], ms["ours"])})
+        if "micro" in ms:
+            rows[-1].update(micro_batch=micro_batch, micro_ms=stats(ms["micro"]),
+                            speedup_micro=pair_ratios(ms["peer"], ms["micro"]))
         print(f"train {batch}: {json.dumps(rows[-1])}", flush=True)
     return rows
 
@@ -218,7 +225,7 @@ def run_side(device, args, sg: Peer | None, osrl: Peer | None) -> dict:
     out = {"device": str(device), "platform": device.platform}
     with jax.default_device(device):
         out["env"] = compare_env(sg, ours, tasks, (1, 15, 256), long_reps)
-        out["train"] = compare_train(osrl, ours, (64, 256), reps)
+        out["train"] = compare_train(osrl, ours, (64, 256, 2048), reps)
         out["infer"] = compare_infer(osrl, ours, (1, 15), reps)
         out["deploy"] = compare_deploy(osrl, ours, episodes, 1 if args.quick else 2, long_reps)
         out["floor"] = floor(osrl, ours, out["deploy"], out["infer"], reps)

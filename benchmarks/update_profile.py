@@ -1,7 +1,7 @@
 """Where one CDT update's time goes: the update taken apart, piece by piece, at each batch size.
 
     python -m benchmarks.update_profile [--preset osrl] [--batches 64,256,2048] [--repeats 5]
-        [--threads 1] [--osrl] [--no-pieces] [--micro-batch 256]
+        [--threads 1] [--osrl] [--no-pieces] [--micro-batch 64,256]
 
 Each row is one jitted program timed on its own (median of `repeats` calls after compiling),
 on synthetic CarGoal-sized episodes (`benchmarks.train_throughput.synthetic_data`):
@@ -15,8 +15,9 @@ on synthetic CarGoal-sized episodes (`benchmarks.train_throughput.synthetic_data
 With `--osrl`, OSRL's own `CDTTrainer.train_one_step` (PyTorch, the `osrl` peer venv, the same
 thread count and cores) on a fixed batch, alternated with our `update`, and the speedup
 (median OSRL / median ours). `--no-pieces` times only the whole update (and OSRL).
-`--micro-batch M` adds `update, micro-batched`: the same update with its gradient summed over
-passes of at most M windows (`PretrainConfig.micro_batch`), alternated with OSRL's too.
+`--micro-batch M[,M2...]` adds `update, passes of <= M` for each M: the same update with its
+gradient summed over passes of at most M windows (`PretrainConfig.micro_batch`), alternated with
+OSRL's too.
 Also XLA's own count (`cost_analysis`) of the update's FLOPs and bytes, and the GFLOP/s.
 With `--threads N` XLA runs on N threads pinned to N cores (`benchmarks.common.pin_threads`, as
 BENCHMARKS.md's peer comparison; OSRL's reference times are one thread's).
@@ -45,12 +46,21 @@ from benchmarks.common import (
 )
 
 OUT = Path("benchmarks/results/update_profile.json")
-UPDATES = ("update", "update, micro-batched")  # the whole-update programs (vs OSRL's step)
 
 
-def programs(preset: str, batch: int, micro_batch: int = 0) -> dict:
-    """Name -> (jitted fn, args) for every piece of one update at `batch` (and, when
-    `micro_batch` splits the batch, the update in passes of at most that many windows)."""
+def passes_name(micro_batch: int) -> str:
+    """The program name of the update in passes of at most `micro_batch` windows."""
+    return f"update, passes of <= {micro_batch}"
+
+
+def is_update(name: str) -> bool:
+    """Whether program `name` is a whole update (what is timed against OSRL's step)."""
+    return name == "update" or name.startswith("update, passes")
+
+
+def programs(preset: str, batch: int, micro_batches_: tuple[int, ...] = ()) -> dict:
+    """Name -> (jitted fn, args) for every piece of one update at `batch` (and, for each size
+    in `micro_batches_` that splits the batch, the update in passes of at most that many)."""
     from benchmarks.train_throughput import SIZES, synthetic_data
     from safecdt_jax.data import sample_windows
     from safecdt_jax.model import CDTConfig, OptimConfig, init_train_state, with_nominal_edges
@@ -84,10 +94,9 @@ def programs(preset: str, batch: int, micro_batch: int = 0) -> dict:
 
     txs = make_optimizer(OptimConfig())
     shapes = _dropout_shapes(cfg, batch, cfg.seq_len)
-    split = {}
-    if micro_batches(batch, micro_batch) > 1:
-        passes = jax.jit(make_update(cfg, OptimConfig(), pre.replace(micro_batch=micro_batch)))
-        split = {"update, micro-batched": (passes, (state, key, data, weights))}
+    split = {passes_name(m): (jax.jit(make_update(cfg, OptimConfig(), pre.replace(micro_batch=m))),
+                              (state, key, data, weights))
+             for m in micro_batches_ if micro_batches(batch, m) > 1}
     return {
         "update": (update(cfg), (state, key, data, weights)),
         **split,
@@ -171,8 +180,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--threads", type=int, default=0, help="1: XLA on one thread; 0: default")
     ap.add_argument("--osrl", action="store_true", help="also time OSRL's train_one_step")
-    ap.add_argument("--micro-batch", type=int, default=0,
-                    help="also time the update in passes of at most this many windows")
+    ap.add_argument("--micro-batch", default="",
+                    help="also time the update in passes of at most M windows, for each M of "
+                         "this comma list")
     ap.add_argument("--no-pieces", dest="pieces", action="store_false",
                     help="time the whole update only")
     ap.add_argument("--out", type=Path, default=OUT)
@@ -184,11 +194,12 @@ def main() -> None:
         from benchmarks.run_all import Peer, dims
 
         peer = Peer("osrl", Path(tempfile.gettempdir()) / "update_profile_osrl.log")
+    micro = tuple(int(m) for m in args.micro_batch.split(",") if m)
     cells, rows, fam_rows, vs_rows = [], [], [], []
     for batch in (int(b) for b in args.batches.split(",")):
-        progs = programs(args.preset, batch, args.micro_batch)
+        progs = programs(args.preset, batch, micro)
         if not args.pieces:
-            progs = {k: v for k, v in progs.items() if k in UPDATES}
+            progs = {k: v for k, v in progs.items() if is_update(k)}
         cost = xla_cost(*progs["update"])
         families = op_breakdown(*progs["update"])
         times = {}
@@ -199,7 +210,7 @@ def main() -> None:
         cell = {"batch": batch, "ms": times, "xla": cost, "families_ms": families,
                 "update_gflop_per_s": cost["gflop"] / (times["update"] / 1e3)}
         if peer is not None:  # alternated: OSRL's step, then each of our updates
-            ours_names = [k for k in UPDATES if k in progs]
+            ours_names = [k for k in progs if is_update(k)]
             steps = max(1, 512 // batch)
             theirs, ours = [], {k: [] for k in ours_names}
             for _ in range(args.repeats):
@@ -212,14 +223,10 @@ def main() -> None:
                     ours[name].append(1e3 * (time.perf_counter() - t))
             cell["osrl_ms"], cell["ours_alternated_ms"] = theirs, ours["update"]
             cell["speedup"] = median(theirs) / median(ours["update"])
-            split = ours.get("update, micro-batched")
-            if split:
-                cell["micro_batched_alternated_ms"] = split
-                cell["micro_batched_speedup"] = median(theirs) / median(split)
-            vs_rows.append([batch, f"{median(theirs):.1f}", f"{median(ours['update']):.1f}",
-                            f"{cell['speedup']:.2f}x",
-                            f"{median(split):.1f}" if split else "",
-                            f"{cell['micro_batched_speedup']:.2f}x" if split else ""])
+            cell["alternated_ms"] = ours
+            cell["speedups"] = {k: median(theirs) / median(v) for k, v in ours.items()}
+            vs_rows += [[batch, f"{median(theirs):.1f}", k, f"{median(v):.1f}",
+                         f"{cell['speedups'][k]:.2f}x"] for k, v in ours.items()]
             print(f"batch {batch}: OSRL {median(theirs):.1f} ms, ours "
                   + ", ".join(f"{k} {median(v):.1f} ms" for k, v in ours.items()), flush=True)
         cells.append(cell)
@@ -234,8 +241,7 @@ def main() -> None:
     text = markdown_table(["batch", "program", "ms (median)", "share of the update"], rows)
     if vs_rows:
         text = ("Against OSRL (alternated, median of each side):\n\n" + markdown_table(
-            ["batch", "OSRL train_one_step ms", "ours update ms", "speedup",
-             f"ours, passes of <= {args.micro_batch} ms", "speedup"], vs_rows)
+            ["batch", "OSRL train_one_step ms", "ours", "ms", "speedup"], vs_rows)
             + "\n\nOur update taken apart:\n\n" + text)
     text += ("\n\nThe update by op family (a `jax.profiler` trace of 3 calls; the share of the "
              "traced op time):\n\n" + markdown_table(["batch", "op family", "ms per update",

@@ -31,6 +31,7 @@ from safecdt_jax.pretrain import (
     run_key,
     stream_key,
 )
+from safecdt_jax.pretrain.config import CPU_MICRO_BATCH
 from safecdt_jax.pretrain.normalize import IONorm, fold_io_norm
 
 TASK = "Synthetic"
@@ -83,6 +84,11 @@ def test_config_defaults_and_validation():
     assert (osrl.relabel_percent, osrl.labels) == (0.2, "episode")  # OSRL's
     assert not (osrl.scale_actions or osrl.standardize_obs)
     assert (osrl.batch_size, osrl.steps) == (2048, 100_000)
+    # Cache-sized passes on a CPU only, unless asked; the cpu preset's batch stays one pass.
+    assert default_pretrain("osrl", backend="cpu").micro_batch == CPU_MICRO_BATCH["osrl"] == 16
+    assert default_pretrain("paper", backend="gpu").micro_batch == 0
+    assert default_pretrain("osrl", backend="cpu", micro_batch=0).micro_batch == 0
+    assert default_pretrain("cpu", backend="cpu", batch_size=64).micro_batch == 0
     assert default_pretrain("cpu", steps=7).steps == 7
     bad = [dict(steps=0), dict(batch_size=-1), dict(chunk=1.5), dict(seed=-1), dict(c0=0.0),
            dict(max_to_keep=0), dict(checkpoint_every=-5), dict(relabel=1),

@@ -137,12 +137,15 @@ def test_checkpoint_records_and_folds_the_normalisation(tmp_path, normalize):
 
 
 def test_a_checkpoint_from_before_the_flags_reads_as_unnormalised():
-    """Its meta has no `scale_actions` / `standardize_obs`: same run as both False, so a cached
-    checkpoint is reused, not retrained; a request with a flag on differs."""
+    """Its meta has no `scale_actions` / `standardize_obs` / `micro_batch`: same run as both
+    False and one pass, so a cached checkpoint is reused, not retrained; a request with a flag
+    on differs."""
     new = config_record(CFG, OptimConfig(), PretrainConfig())
     old = {**new, "pretrain": {k: v for k, v in new["pretrain"].items()
-                               if k not in ("scale_actions", "standardize_obs")}}
+                               if k not in ("scale_actions", "standardize_obs", "micro_batch")}}
     assert config_diff(old, new) == []
     assert configs_from_meta(old)[2] == PretrainConfig()
     flagged = config_record(CFG, OptimConfig(), PretrainConfig(scale_actions=True))
     assert config_diff(old, flagged) == ["pretrain.scale_actions: False -> True"]
+    split = config_record(CFG, OptimConfig(), PretrainConfig(micro_batch=8))
+    assert config_diff(old, split) == ["pretrain.micro_batch: 0 -> 8"]

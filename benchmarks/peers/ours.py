@@ -52,12 +52,14 @@ def make_env_steps(task: str, batch: int) -> Callable[[], dict]:
     return lambda: {"seconds": _timed(fn, keys), "env_steps": batch * env.episode_length}
 
 
-def make_train(task: str, batch: int, steps: int) -> Callable[[], dict]:
-    """`steps` CDT updates in one `train_chunk` call (window sampling on the device included)."""
+def make_train(task: str, batch: int, steps: int, micro_batch: int = 0) -> Callable[[], dict]:
+    """`steps` CDT updates in one `train_chunk` call (window sampling on the device included),
+    each update's gradient in passes of at most `micro_batch` windows (0: one pass)."""
     cfg = model_config(task)
     data = synthetic_data(cfg.obs_dim, cfg.act_dim, cfg.episode_len)
     weights = jnp.full(data.lengths.shape, 1.0 / data.lengths.shape[0])
-    fn = make_train_chunk(cfg, OptimConfig(), PretrainConfig(batch_size=batch, chunk=steps))
+    fn = make_train_chunk(cfg, OptimConfig(), PretrainConfig(batch_size=batch, chunk=steps,
+                                                                   micro_batch=micro_batch))
     state = init_train_state(jax.random.key(0), cfg)
     args = (state, run_key(0), data, weights, jnp.int32(2**30))
     _timed(fn, *args)

@@ -21,7 +21,9 @@ def pretrain(
         min=1, help="Windows per update (default: the preset's).")] = None,
     micro_batch: Annotated[int | None, typer.Option(
         min=0, help="Windows per forward/backward pass; the update sums the passes' gradients "
-                    "(0 = the whole batch; 256 speeds up --batch 2048 on a CPU).")] = None,
+                    "(0 = the whole batch; default: 16 for the osrl and paper presets on a CPU, "
+                    "where cache-sized passes run a batch of 2048 twice as fast, else 0).")
+    ] = None,
     seed: Annotated[int, typer.Option(
         min=0, help="PRNG seed (init, relabelling, every batch).")] = 0,
     chunk: Annotated[int | None, typer.Option(

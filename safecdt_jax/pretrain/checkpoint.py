@@ -32,7 +32,7 @@ RESUMABLE_FIELDS = frozenset({"pretrain.steps", "pretrain.checkpoint_every",
 # Run-config fields added after checkpoints were first written, with the value those older
 # checkpoints were trained with; a meta without them reads as these.
 LEGACY_PRETRAIN = {"scale_actions": False, "standardize_obs": False, "relabel_percent": 0.2,
-                   "labels": "episode"}
+                   "labels": "episode", "micro_batch": 0}
 # Model fields added later, likewise (OSRL's linear token encoding).
 LEGACY_MODEL = {"token_bins": 0, "token_rates": False, "constant_targets": False,
                 "return_edges": [], "cost_edges": []}

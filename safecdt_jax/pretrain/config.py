@@ -104,11 +104,31 @@ _DEFAULTS: dict[str, dict[str, Any]] = {
 }
 
 
-def default_pretrain(preset: str, **overrides: Any) -> PretrainConfig:
+# Windows per pass on a CPU backend, per preset. An update runs fastest on a CPU in passes small
+# enough that their activations stay in cache: at batch 2048 (`osrl` preset, one thread) passes
+# of 8-16 windows took half the time of one pass, 2.2-2.3x OSRL's step; the `paper` preset's
+# model gains 1.7x at batch 256 (docs/PERFORMANCE.md). The `cpu` preset's batch of 32 already
+# fits (passes of 8-16 gained nothing there), so it stays one pass. Accelerators want the whole
+# batch in one pass.
+CPU_MICRO_BATCH = {"osrl": 16, "paper": 16}
+
+
+def default_pretrain(
+    preset: str, *, backend: str | None = None, **overrides: Any
+) -> PretrainConfig:
     """The default `PretrainConfig` for model preset `preset`, with `overrides` applied.
 
+    On a CPU backend (`backend`, default `jax.default_backend()`) the presets named in
+    `CPU_MICRO_BATCH` compute each update in passes of that many windows unless `overrides` set
+    `micro_batch`: the same update up to summation order, with each pass's own dropout draws.
     Raises ValueError for an unknown preset name.
     """
     if preset not in _DEFAULTS:
         raise ValueError(f"unknown CDT preset {preset!r}; choose one of {', '.join(_DEFAULTS)}")
-    return PretrainConfig(**_DEFAULTS[preset]).replace(**overrides)
+    cfg = PretrainConfig(**_DEFAULTS[preset]).replace(**overrides)
+    if "micro_batch" not in overrides and preset in CPU_MICRO_BATCH:
+        import jax
+
+        if (backend or jax.default_backend()) == "cpu":
+            cfg = cfg.replace(micro_batch=CPU_MICRO_BATCH[preset])
+    return cfg
