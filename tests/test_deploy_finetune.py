@@ -193,3 +193,29 @@ def test_adapter_gradient_skips_the_frozen_weights_gradients():
     adapter_grad = flops(jax.grad(lambda a: lora_loss(a, params, cfg, win, w)), adapters)
     full_grad = flops(jax.grad(lambda p: lora_loss(adapters, p, cfg, win, w)), params)
     assert adapter_grad / forward < 2.5 < full_grad / forward
+
+
+def test_seeds_in_turn_match_the_batched_seeds_and_a_loop(base, buf, lora):
+    """`lora_in_turn` loops over the vmapped seeds instead of batching them: the adapters
+    agree with the batched program to float rounding and with a loop of single-seed calls."""
+    keys = jax.random.split(jax.random.key(5), 3)
+    loras = jax.vmap(lambda k: init_lora(k, base, MCFG))(keys)
+    opts = jax.vmap(lambda lo: init_adapter_opt(lo, CFG))(loras)
+    variant, lam = make_variant("safe_cdt"), jnp.float32(5.0)
+
+    def seeds(cfg):
+        one = lambda k, lo, op: lora_finetune(k, lo, op, base, MCFG, buf, lam,
+                                              jnp.float32(BUDGET), variant, cfg)
+        return jax.jit(jax.vmap(one))(keys, loras, opts)[0]
+
+    batched, in_turn = seeds(CFG), seeds(CFG.replace(lora_in_turn=True))
+    assert not leaves_equal(in_turn, loras)  # the steps ran
+    for x, y in zip(jax.tree.leaves(in_turn), jax.tree.leaves(batched), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+    for i, k in enumerate(keys):
+        pick = lambda t, i=i: jax.tree.map(lambda leaf: leaf[i], t)
+        single = run(k, pick(loras), pick(opts), base, buf, variant)[0]
+        for a, b in zip(jax.tree.leaves(pick(in_turn)), jax.tree.leaves(single), strict=True):
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="lora_in_turn"):
+        DeployConfig(lora_in_turn="yes")

@@ -35,9 +35,16 @@ FullEpisodes = Annotated[bool, typer.Option(
          "the budget (the paper's runtime budget, the default).")]
 
 
-def _deploy_config(episodes: int, horizon: int | None, full_episodes: bool = False
-                   ) -> DeployConfig:
-    return DeployConfig(episodes=episodes, horizon=horizon, stop_over_budget=not full_episodes)
+LoraInTurn = Annotated[bool, typer.Option(
+    help="Compute the seeds' LoRA gradients one seed after another instead of as one batched "
+         "product: about 2x faster LoRA steps on a CPU (activations stay in cache), the same "
+         "adapters to float rounding; keep it off on a GPU.")]
+
+
+def _deploy_config(episodes: int, horizon: int | None, full_episodes: bool = False,
+                   lora_in_turn: bool = False) -> DeployConfig:
+    return DeployConfig(episodes=episodes, horizon=horizon, stop_over_budget=not full_episodes,
+                        lora_in_turn=lora_in_turn)
 
 
 def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None,
@@ -62,14 +69,14 @@ Act = Annotated[str, typer.Option(
 
 
 def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed, out, title,
-                      dynamics=None, full_episodes=False, act="checkpoint"):
+                      dynamics=None, full_episodes=False, act="checkpoint", lora_in_turn=False):
     from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.deploy.job import parse_list, run_deployment, write_results
     from safecdt_jax.envs.dynamics import parse_dynamics
 
     variants = parse_list(variant, str, "variant")
     budgets = parse_list(budget, float, "budget")
-    cfg = _deploy_config(episodes, horizon, full_episodes)
+    cfg = _deploy_config(episodes, horizon, full_episodes, lora_in_turn)
     results = run_deployment(ckpt, target, variants, budgets, seeds, seed=seed, cfg=cfg,
                              dynamics=parse_dynamics(dynamics),
                              stochastic_actions=parse_action_mode(act))
@@ -95,6 +102,7 @@ def deploy(
     dynamics: Dynamics = None,
     full_episodes: FullEpisodes = False,
     act: Act = "checkpoint",
+    lora_in_turn: LoraInTurn = False,
 ) -> None:
     """Deploys a pretrained CDT in the pair's target task: every variant x budget x dynamics
     shift x seed at once."""
@@ -107,7 +115,7 @@ def deploy(
         parse_action_mode(act)
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
                           out or Path("runs") / pair, f"Safe-CDT deployment {pair}", dynamics,
-                          full_episodes, act)
+                          full_episodes, act, lora_in_turn)
     except ValueError as e:  # bad pair/variant/budget, CheckpointError: one clean line
         _fail(e)
 
@@ -134,6 +142,7 @@ def run(
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
     full_episodes: FullEpisodes = False,
+    lora_in_turn: LoraInTurn = False,
 ) -> None:
     """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report."""
     from safecdt_jax.deploy.job import parse_pair
@@ -160,7 +169,7 @@ def run(
                    f"x {episodes} episodes")
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
                           out or Path("runs") / pair, f"Safe-CDT {pair} ({preset} preset)",
-                          dynamics, full_episodes)
+                          dynamics, full_episodes, lora_in_turn=lora_in_turn)
     except ValueError as e:
         _fail(e)
     typer.echo(f"total {time.perf_counter() - start:.0f} s")

@@ -92,6 +92,12 @@ def lora_finetune(
     opt = adapter_optimizer(cfg)
     on = jnp.asarray(variant.lora) & (buffer_size(buffer) > 0)
 
+    def gradient(lora, base_params, win, weights, drop_key):
+        return jax.value_and_grad(lora_loss)(lora, base_params, model_cfg, win, weights, drop_key)
+
+    if cfg.lora_in_turn:  # under vmap: a loop over seeds, each pass's activations in cache
+        gradient = jax.custom_batching.sequential_vmap(gradient)
+
     def step(carry, k):
         lora, opt_state = carry
         k_win, k_drop = jax.random.split(k)
@@ -103,9 +109,7 @@ def lora_finetune(
         ctg_first = win.costs_to_go[:, 0] / model_cfg.cost_scale  # back to raw cost units
         weights = replay_weights(ctg_first, valid, lam, budget, cfg, enabled=variant.reweight)
         drop_key = k_drop if cfg.lora_dropout else None
-        loss, grads = jax.value_and_grad(lora_loss)(
-            lora, base_params, model_cfg, win, weights, drop_key
-        )
+        loss, grads = gradient(lora, base_params, win, weights, drop_key)
         updates, new_opt_state = opt.update(grads, opt_state, lora)
         new_lora = optax.apply_updates(lora, updates)
         # Variants are data: compute the update always, keep it only where LoRA is on.
