@@ -25,6 +25,7 @@ from benchmarks.common import machine, pin_threads, stats, write_json
 from benchmarks.peers import setup
 from benchmarks.peers.report import render
 from safecdt_jax.data.dataset import atomic_path
+from safecdt_jax.pretrain.config import CPU_MICRO_BATCH
 
 ROOT = Path(__file__).resolve().parents[1]
 WORKER = Path(__file__).resolve().parent / "peers" / "worker.py"
@@ -114,11 +115,13 @@ def compare_env(sg: Peer, ours, tasks, batches, repeats: int) -> list[dict]:
     return rows
 
 
-def compare_train(osrl: Peer, ours, batches, repeats: int, micro_batch: int = 256) -> list[dict]:
+def compare_train(osrl: Peer, ours, batches, repeats: int,
+                  micro_batch: int = CPU_MICRO_BATCH["osrl"]) -> list[dict]:
     """(2) One CDT update (`osrl` preset, CarGoal sizes): OSRL's train_one_step vs our chunk.
 
-    A batch larger than `micro_batch` is also timed micro-batched (the gradient in passes of
-    `micro_batch` windows, `PretrainConfig.micro_batch`), in the same alternation."""
+    A batch larger than `micro_batch` (default: the pass size the `osrl` preset pretrains with
+    on a CPU) is also timed micro-batched (the gradient in passes of `micro_batch` windows,
+    `PretrainConfig.micro_batch`), in the same alternation."""
     rows = []
     for batch in batches:
         steps = max(1, 512 // batch)  # about a second of work per call on either side

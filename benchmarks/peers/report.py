@@ -243,10 +243,17 @@ SAVED = (
      "python -m benchmarks.expert_throughput --omnisafe"),
     ("Where a CDT update's time goes", "update_profile.md",
      "python -m benchmarks.update_profile --threads 1"),
+    ("The CDT update in cache-sized passes", "update_profile_micro_small.md",
+     "python -m benchmarks.update_profile --batches 64,256,2048 --micro-batch 8,16,32 --osrl "
+     "--no-pieces --threads 1"),
+    ("The seeds' LoRA steps, batched or in turn", "lora_in_turn.md",
+     "python -m benchmarks.lora_in_turn"),
     ("The deployment at scale: seeds, episodes, devices", "deploy_scale.md",
      "python -m benchmarks.deploy_scale"),
     ("Compile time and the persistent cache", "compile_time.md",
      "python -m benchmarks.compile_time"),
+    ("The test suite's compilation cache", "suite_cache.md",
+     "python -m benchmarks.suite_cache"),
 )
 
 
