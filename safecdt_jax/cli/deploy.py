@@ -37,8 +37,9 @@ FullEpisodes = Annotated[bool, typer.Option(
 
 LoraInTurn = Annotated[bool, typer.Option(
     help="Compute the seeds' LoRA gradients one seed after another instead of as one batched "
-         "product: about 2x faster LoRA steps on a CPU (activations stay in cache), the same "
-         "adapters to float rounding; keep it off on a GPU.")]
+         "product: on a CPU the 15-seed gradient ran 1.9x faster and a whole sweep 1.17x "
+         "(activations stay in cache); the same adapters to float rounding; keep it off on a "
+         "GPU.")]
 
 
 def _deploy_config(episodes: int, horizon: int | None, full_episodes: bool = False,
