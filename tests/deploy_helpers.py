@@ -10,8 +10,10 @@ from safecdt_jax.model import CDTConfig, init_cdt
 
 TASK = "CarCircle2"
 # 6 episodes of 80 steps, stages of 2, window 4, lambda after 2 episodes, 2 LoRA steps of 4.
+# Resolved as `sweep` resolves it, so that tests which look up `_compiled(..., TINY_DEPLOY)`
+# find the program the sweep ran.
 TINY_DEPLOY = DeployConfig(episodes=6, horizon=80, stage_len=2, window=4, lambda_warmup=2,
-                           lora_steps=2, lora_batch=4, lora_lr=3e-3)
+                           lora_steps=2, lora_batch=4, lora_lr=3e-3).resolved()
 
 
 @functools.cache

@@ -10,6 +10,7 @@ import pytest
 from safecdt_jax.data import buffer_add, buffer_init, sample_windows
 from safecdt_jax.deploy import (
     DeployConfig,
+    adapter_gradient,
     init_adapter_opt,
     lora_finetune,
     lora_loss,
@@ -136,6 +137,33 @@ def test_lora_loss_is_the_weighted_masked_mean(base, buf, lora):
                                rtol=1e-6)
 
 
+def test_gradient_in_passes_is_the_one_pass_gradient(base, buf, lora):
+    """Passes of 4 windows divide by the whole batch's valid count: with the invalid windows
+    all in the first pass (per-pass means would differ), loss and gradient equal one pass's."""
+    win = sample_windows(jax.random.key(3), buf, 16, MCFG.seq_len, None, 0.1, 1.0)
+    win = win._replace(mask=win.mask.at[:3].set(0.0))  # 3 invalid windows, all in pass 0
+    weights = jnp.linspace(0.2, 1.0, 16)
+    lora_b = jax.tree.map(lambda x: x + 0.1, lora)
+    grad = jax.jit(adapter_gradient, static_argnames=("model_cfg", "micro_batch"))
+    whole = grad(lora_b, base, MCFG, win, weights, None, micro_batch=0)
+    passes = grad(lora_b, base, MCFG, win, weights, None, micro_batch=4)
+    assert not leaves_equal(whole[1], jax.tree.map(jnp.zeros_like, whole[1]))
+    for x, y in zip(jax.tree.leaves(passes), jax.tree.leaves(whole), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-7)
+    # ... and the finetuning round with them keeps the same adapters to float rounding.
+    opt = init_adapter_opt(lora, CFG)
+    one = finetune(jax.random.key(6), lora, opt, base, MCFG, buf, jnp.float32(5.0),
+                   jnp.float32(BUDGET), make_variant("safe_cdt"), cfg=CFG)[0]
+    four = finetune(jax.random.key(6), lora, opt, base, MCFG, buf, jnp.float32(5.0),
+                    jnp.float32(BUDGET), make_variant("safe_cdt"),
+                    cfg=CFG.replace(lora_micro_batch=4))[0]
+    assert not leaves_equal(one, lora)
+    for x, y in zip(jax.tree.leaves(four), jax.tree.leaves(one), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
+    with pytest.raises(ValueError, match="lora_micro_batch"):
+        DeployConfig(lora_micro_batch=-1)
+
+
 def test_stacked_variants_vmap_through_one_compiled_finetune(base, buf, lora):
     traces = []
 
@@ -208,7 +236,7 @@ def test_seeds_in_turn_match_the_batched_seeds_and_a_loop(base, buf, lora):
                                               jnp.float32(BUDGET), variant, cfg)
         return jax.jit(jax.vmap(one))(keys, loras, opts)[0]
 
-    batched, in_turn = seeds(CFG), seeds(CFG.replace(lora_in_turn=True))
+    batched, in_turn = seeds(CFG.replace(lora_in_turn=False)), seeds(CFG.replace(lora_in_turn=True))
     assert not leaves_equal(in_turn, loras)  # the steps ran
     for x, y in zip(jax.tree.leaves(in_turn), jax.tree.leaves(batched), strict=True):
         np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
@@ -217,5 +245,33 @@ def test_seeds_in_turn_match_the_batched_seeds_and_a_loop(base, buf, lora):
         single = run(k, pick(loras), pick(opts), base, buf, variant)[0]
         for a, b in zip(jax.tree.leaves(pick(in_turn)), jax.tree.leaves(single), strict=True):
             np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    # Under the sweep's two vmaps (runs x seeds) both axes run in turn (two more loops in the
+    # program than the batched one), with the same result.
+    lams = jnp.asarray([5.0, 0.5])
+
+    def runs(cfg):
+        one = lambda lam, k, lo, op: lora_finetune(k, lo, op, base, MCFG, buf, lam,
+                                                   jnp.float32(BUDGET), variant, cfg)
+        return jax.jit(jax.vmap(jax.vmap(one, (None, 0, 0, 0)), (0, None, None, None)))
+
+    programs = {on: runs(CFG.replace(lora_in_turn=on)) for on in (False, True)}
+    loops = {on: f.lower(lams, keys, loras, opts).as_text().count("stablehlo.while")
+             for on, f in programs.items()}
+    assert loops[True] == loops[False] + 2, loops
+    nested, flat = (programs[on](lams, keys, loras, opts)[0] for on in (True, False))
+    for x, y in zip(jax.tree.leaves(nested), jax.tree.leaves(flat), strict=True):
+        np.testing.assert_allclose(x, y, rtol=1e-5, atol=1e-6)
     with pytest.raises(ValueError, match="lora_in_turn"):
         DeployConfig(lora_in_turn="yes")
+
+
+def test_seeds_in_turn_by_default_on_one_cpu_device_only():
+    """`lora_in_turn` None resolves per device set: on for one CPU device (these tests'),
+    off with the seeds sharded over several; an explicit choice is kept."""
+    cpu = jax.devices("cpu")[0]
+    assert DeployConfig().lora_in_turn is None
+    assert DeployConfig().resolved([cpu]).lora_in_turn is True
+    assert DeployConfig().resolved([cpu, cpu]).lora_in_turn is False
+    assert DeployConfig(lora_in_turn=False).resolved([cpu]).lora_in_turn is False
+    assert DeployConfig().resolved().lora_in_turn is (jax.default_backend() == "cpu"
+                                                      and jax.device_count() == 1)

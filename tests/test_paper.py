@@ -46,6 +46,23 @@ def test_experiments_of_the_default_plan():
     assert exps["PC1-PC2_source_ctg"].task == "source"
 
 
+def test_spec_records_lora_in_turn_only_where_it_changes_bits():
+    """Records made before `lora_in_turn` existed (batched) keep matching a batched plan; a plan
+    taking LoRA steps in turn marks its LoRA experiments, and only those, as different."""
+    from safecdt_jax.paper.run import experiment_spec
+
+    ckpt = {"task": "CarGoal1", "preset": "cpu", "step": 1, "data": "x"}
+    exps = {e.key: e for e in experiments(PaperPlan())}
+    main, ctg = exps["CG1-CG2_main"], exps["CG1-CG2_ctg"]  # with LoRA; fixed ratios only
+    batched, in_turn = PaperPlan(lora_in_turn=False), PaperPlan(lora_in_turn=True)
+    assert "lora_in_turn" not in experiment_spec(main, batched, ckpt)
+    assert experiment_spec(main, in_turn, ckpt) == {**experiment_spec(main, batched, ckpt),
+                                                    "lora_in_turn": True}
+    assert experiment_spec(ctg, in_turn, ckpt) == experiment_spec(ctg, batched, ckpt)
+    with pytest.raises(ValueError, match=r"PaperPlan\.lora_in_turn"):
+        PaperPlan(lora_in_turn="yes")
+
+
 def test_switch_deltas_and_direction_by_hand():
     # seed 0: costs 2 then 6 (delta +4); seed 1: 5 then 3 (delta -2); budget 4 -> VR deltas
     cost = [[2, 2, 6, 6], [5, 5, 3, 3]]

@@ -110,7 +110,8 @@ def _deploy(d: dict) -> str:
     names = {"peer": "OSRL `CDTTrainer.evaluate` over Safety-Gymnasium, seed after seed",
              "zero_shot": "ours, zero-shot CDT, all seeds x episodes in one vmapped call",
              "safe_cdt": "ours, full Safe-CDT (LoRA after every episode, scheduler, "
-                         "reweighting), one sweep call, seeds vmapped"}
+                         "reweighting), one sweep call, seeds vmapped, their LoRA gradients "
+                         "in turn"}
     ran = {"peer": f"{d['peer_episodes_run']} episode(s) of 1 seed",
            "zero_shot": f"{d['seeds']} x {d['ours_episodes_run']}",
            "safe_cdt": f"{d['seeds']} x {d['ours_episodes_run']}"}

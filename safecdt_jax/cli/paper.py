@@ -22,6 +22,11 @@ def paper(
         help="Train the baselines that are not cached (default on, off with --quick).")]
         = True,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
+    lora_in_turn: Annotated[bool | None, typer.Option(
+        "--lora-in-turn/--no-lora-in-turn", show_default="on for one CPU device, else off",
+        help="The seeds' LoRA gradients one after another (faster on a CPU) or batched; "
+             "--no-lora-in-turn reuses and reproduces the records made before 2026-12-05.")]
+        = None,
 ) -> None:
     """Tables 1-7, Figure 2 and the safety certificate, ours beside the paper's, in
     OUT/REPORT.md; finished experiments (OUT/experiments/*.json) are reused, so an
@@ -32,7 +37,8 @@ def paper(
     try:
         pair_list = tuple(parse_list(pairs, str, "pair"))
         study = "CG1-CG2" if "CG1-CG2" in pair_list else pair_list[0]
-        settings = dict(pairs=pair_list, study_pair=study, preset=preset, seed=seed)
+        settings = dict(pairs=pair_list, study_pair=study, preset=preset, seed=seed,
+                        lora_in_turn=lora_in_turn)
         plan = (quick_plan(**settings) if quick else
                 PaperPlan(**settings, train_baselines=baselines))
     except ValueError as e:

@@ -15,6 +15,7 @@ from safecdt_jax.deploy.config import (
     stack_variants,
 )
 from safecdt_jax.deploy.finetune import (
+    adapter_gradient,
     adapter_optimizer,
     init_adapter_opt,
     lora_finetune,
@@ -53,6 +54,7 @@ __all__ = [
     "Metrics",
     "SchedulerState",
     "Variant",
+    "adapter_gradient",
     "adapter_optimizer",
     "cdt_episode",
     "deploy",

@@ -69,13 +69,21 @@ class DeployConfig:
             silent; default False (deterministic forward pass): with 10 steps of 32 sequences per
             episode, dropout noise would dominate the small gradient signal, and the adapters are
             trained for exactly the forward pass the deployment uses (evaluation mode).
-        lora_in_turn: when the deployment is vmapped over seeds (and runs), compute the
-            seeds' adapter gradients one after another (`jax.custom_batching.sequential_vmap`)
-            instead of as one batched product. Off by default (the batched product, as every
-            published result ran). On a CPU each seed's 32 windows keep their activations in
-            cache, so 15 seeds' gradient took about half the time (docs/PERFORMANCE.md); the
-            values agree to float rounding (summation order). Keep it off on an accelerator
-            and with the seed axis sharded over devices, where the batch is what is fast.
+        lora_in_turn: under the sweep's vmap over runs and seeds, compute their adapter
+            gradients one after another (`jax.custom_batching.sequential_vmap`) instead of as
+            one batched product. None (default): on where the sweep runs on one CPU device,
+            off on an accelerator or with the seeds sharded over several devices (resolved by
+            `resolved`). On a CPU each seed's 32 windows keep their activations in cache: the
+            LoRA steps of a 15-seed sweep ran 1.5x (`cpu` preset, 2 threads) and 2.2x (`osrl`,
+            1 thread) faster, the whole sweep 1.19x and 1.46x (docs/PERFORMANCE.md). The
+            adapters agree to float rounding (summation order), but a rollout that follows
+            them can leave the other's path: results made before 2026-12-05 ran batched, and
+            `lora_in_turn=False` (`--no-lora-in-turn`) reproduces them bit for bit.
+        lora_micro_batch: compute each LoRA step's gradient in passes of at most this many of
+            its `lora_batch` windows, summed (0, the default: one pass, as every published
+            result ran). The same gradient up to float summation order; on a CPU small passes
+            keep their activations in cache (docs/PERFORMANCE.md). Per seed under the sweep's
+            vmap, so 15 seeds in passes of 8 multiply 120 windows at a time.
         clip_ctg: clip the rollout's cost-to-go at 0 once the budget is spent (True); False is
             OSRL's rule (it may go negative, which no training window contains).
         stop_over_budget: the paper's "consistent runtime-budget protocol" (True): a wrapper
@@ -114,16 +122,19 @@ class DeployConfig:
     lora_batch: int = 32
     lora_lr: float = 1e-4
     lora_dropout: bool = False
-    lora_in_turn: bool = False
+    lora_in_turn: bool | None = None
+    lora_micro_batch: int = 0
     clip_ctg: bool = True
     stop_over_budget: bool = True
 
     def __post_init__(self) -> None:
         check.integers(self, "episodes", "stage_len", "window", "lora_steps", "lora_batch")
         check.integers(self, "horizon", optional=True)
-        check.integers(self, "lambda_warmup", minimum=0)
+        check.integers(self, "lambda_warmup", "lora_micro_batch", minimum=0)
         check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr")
-        check.booleans(self, "lora_dropout", "lora_in_turn", "clip_ctg", "stop_over_budget")
+        check.booleans(self, "lora_dropout", "clip_ctg", "stop_over_budget")
+        if self.lora_in_turn is not None:
+            check.booleans(self, "lora_in_turn")
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")
         if not 1 <= self.momentum_factor <= self.momentum_max:
@@ -144,6 +155,15 @@ class DeployConfig:
     def replace(self, **changes: Any) -> DeployConfig:
         """Return a copy with `changes` applied (validated again)."""
         return dataclasses.replace(self, **changes)
+
+    def resolved(self, devices: list | None = None) -> DeployConfig:
+        """This config with its per-device choices made: `lora_in_turn` None becomes True
+        where `devices` (default: the default backend's) are one CPU device, else False."""
+        if self.lora_in_turn is not None:
+            return self
+        devices = jax.devices() if devices is None else list(devices)
+        one_cpu = len(devices) == 1 and devices[0].platform == "cpu"
+        return self.replace(lora_in_turn=one_cpu)
 
 
 @dataclass(frozen=True)

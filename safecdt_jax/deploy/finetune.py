@@ -20,6 +20,7 @@ from safecdt_jax.deploy.reweight import replay_weights
 from safecdt_jax.model.cdt import Params
 from safecdt_jax.model.config import CDTConfig
 from safecdt_jax.model.lora import Lora, apply_cdt_lora
+from safecdt_jax.model.optim import micro_batches
 
 
 def adapter_optimizer(cfg: DeployConfig) -> optax.GradientTransformation:
@@ -39,6 +40,7 @@ def lora_loss(
     windows: Windows,
     weights,
     key: jax.Array | None = None,
+    count: jax.Array | None = None,
 ) -> jax.Array:
     """Weighted behaviour-cloning loss of the merged model (scalar, action units squared).
 
@@ -46,6 +48,8 @@ def lora_loss(
     the CDT's Gaussian action head with `merge_lora(base_params, lora)`; the mean over i runs over
     the valid windows (those with a real first step). `weights` [N] from `replay_weights`.
     `key` None: evaluation-mode forward pass (no dropout); a key turns the CDT's dropout on.
+    `count`: the number of valid windows to divide by (default: those of `windows`); a slice of
+    a larger batch passes the whole batch's count, so that the slices' losses sum to its loss.
     """
     batch = windows._asdict()
     out = apply_cdt_lora(base_params, lora, model_cfg, batch, train=key is not None, key=key)
@@ -54,8 +58,46 @@ def lora_loss(
     err = jnp.where(mask[..., None] > 0, out["action_mean"] - windows.actions, 0.0)
     per_window = (err * err).sum(axis=(1, 2)) / jnp.maximum(mask.sum(axis=1), 1.0)
     valid = mask[:, 0] > 0
+    count = valid.sum() if count is None else count
     return (jnp.where(valid, weights * per_window, 0.0).sum()
-            / jnp.maximum(valid.sum(), 1).astype(jnp.float32))
+            / jnp.maximum(count, 1).astype(jnp.float32))
+
+
+def adapter_gradient(
+    lora: Lora,
+    base_params: Params,
+    model_cfg: CDTConfig,
+    windows: Windows,
+    weights,
+    key: jax.Array | None,
+    micro_batch: int = 0,
+) -> tuple[jax.Array, Lora]:
+    """`(loss, grads)` of `lora_loss` with respect to the adapters, in passes of at most
+    `micro_batch` windows (0: one pass).
+
+    The passes (`model.micro_batches` equal slices, one `lax.scan` step each) divide by the
+    whole batch's count of valid windows and are summed: the same loss and gradient up to float
+    summation order, with one slice's activations alive at a time (faster on a CPU, where a
+    whole batch's activations spill the caches: docs/PERFORMANCE.md). Slice `i` draws its
+    dropout with `fold_in(key, i)`.
+    """
+    grad_fn = jax.value_and_grad(lora_loss)
+    size = windows.mask.shape[0]
+    n = micro_batches(size, micro_batch)
+    if n == 1:
+        return grad_fn(lora, base_params, model_cfg, windows, weights, key)
+    count = (windows.mask[:, 0] > 0).sum()
+    slices = jax.tree.map(lambda v: v.reshape(n, size // n, *v.shape[1:]), (windows, weights))
+
+    def body(total, xs):
+        i, (win, w) = xs
+        k = None if key is None else jax.random.fold_in(key, i)
+        part = grad_fn(lora, base_params, model_cfg, win, w, k, count)
+        return jax.tree.map(jnp.add, total, part), None
+
+    zeros = jax.tree.map(jnp.zeros_like, (jnp.zeros((), jnp.float32), lora))
+    total, _ = jax.lax.scan(body, zeros, (jnp.arange(n), slices))
+    return total
 
 
 def lora_finetune(
@@ -93,10 +135,14 @@ def lora_finetune(
     on = jnp.asarray(variant.lora) & (buffer_size(buffer) > 0)
 
     def gradient(lora, base_params, win, weights, drop_key):
-        return jax.value_and_grad(lora_loss)(lora, base_params, model_cfg, win, weights, drop_key)
+        return adapter_gradient(lora, base_params, model_cfg, win, weights, drop_key,
+                                cfg.lora_micro_batch)
 
-    if cfg.lora_in_turn:  # under vmap: a loop over seeds, each pass's activations in cache
-        gradient = jax.custom_batching.sequential_vmap(gradient)
+    if cfg.resolved().lora_in_turn:
+        # A loop over each vmapped axis instead of one batched product, so that one pass's
+        # activations stay in cache: wrapped twice for the sweep's two vmaps (runs, seeds).
+        in_turn = jax.custom_batching.sequential_vmap
+        gradient = in_turn(in_turn(gradient))
 
     def step(carry, k):
         lora, opt_state = carry

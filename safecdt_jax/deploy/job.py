@@ -75,7 +75,7 @@ def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None,
 
     env, env_params = envs.make(target)
     policy = with_action_mode(load_policy(ckpt, task=target), stochastic_actions)
-    cfg = DeployConfig() if cfg is None else cfg
+    cfg = (DeployConfig() if cfg is None else cfg).resolved()
     return env, env_params, policy, cfg, float(policy.meta["dataset"]["reference_return"])
 
 

@@ -105,6 +105,7 @@ def sweep(
     if chunk < 1 or cfg.episodes % chunk:
         raise ValueError(f"chunk {chunk} must divide the {cfg.episodes} episodes")
     devices = jax.devices() if devices is None else list(devices)
+    cfg = cfg.resolved(devices)
     n_seeds = keys.shape[0]
     pad = (-n_seeds) % len(devices)
     if pad:  # repeat the last key; the padded seeds are computed and dropped

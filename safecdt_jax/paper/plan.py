@@ -51,6 +51,9 @@ class PaperPlan:
         alpha, kappa: the certificate's tolerated probability of any violation and B*'s
             confidence coefficient (docs/METHOD.md section 7).
         seed: base PRNG seed of every experiment.
+        lora_in_turn: `DeployConfig.lora_in_turn` of every deployment (None: on for one CPU
+            device). An experiment with LoRA steps run in turn records it in its spec; the
+            records made before 2026-12-05 ran batched (False) and still match that.
     """
 
     pairs: tuple[str, ...] = ("CG1-CG2", "CC1-CC2", "PC1-PC2")
@@ -78,6 +81,7 @@ class PaperPlan:
     alpha: float = 0.05
     kappa: float = 1.0
     seed: int = 0
+    lora_in_turn: bool | None = None
 
     def __post_init__(self) -> None:
         from safecdt_jax.deploy.job import PAIRS
@@ -89,6 +93,8 @@ class PaperPlan:
         check.integers(self, "seed", minimum=0)
         check.positive(self, "budget", "kappa")
         check.booleans(self, "train_baselines")
+        if self.lora_in_turn is not None:
+            check.booleans(self, "lora_in_turn")
         bad = [p for p in self.pairs if p not in PAIRS]
         if bad or not self.pairs:
             raise ValueError(f"PaperPlan.pairs: unknown pair {', '.join(bad) or '(none)'}; "

@@ -56,11 +56,22 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
     spec = {"format": RECORD_FORMAT, "pair": e.pair, "name": e.name, "kind": e.kind,
             "seeds": e.seeds, "episodes": e.episodes, "budget": plan.budget}
     if e.kind == "deploy":
-        return spec | {"task": source if e.task == "source" else target,
-                       "runs": [[v, float(b)] for v, b in e.runs], "horizon": plan.horizon,
-                       "seed": plan.seed, "stop_over_budget": True, "checkpoint": dict(ckpt_id)}
+        spec |= {"task": source if e.task == "source" else target,
+                 "runs": [[v, float(b)] for v, b in e.runs], "horizon": plan.horizon,
+                 "seed": plan.seed, "stop_over_budget": True, "checkpoint": dict(ckpt_id)}
+        # Only where it changes bits: LoRA steps taken in turn. Batched ones (and runs without
+        # LoRA) keep the spec of the records made before the key existed.
+        return spec | ({"lora_in_turn": True} if _lora_in_turn(e, plan) else {})
     return spec | {"algos": list(plan.baseline_algos), "preset": plan.baseline_preset,
                    "stop_over_budget": True, "data": ckpt_id["data"]}
+
+
+def _lora_in_turn(e: Experiment, plan: PaperPlan) -> bool:
+    """Whether deployment `e` takes LoRA steps with the seeds' gradients in turn."""
+    from safecdt_jax.deploy.config import DeployConfig, make_variant
+
+    in_turn = DeployConfig(lora_in_turn=plan.lora_in_turn).resolved().lora_in_turn
+    return in_turn and any(bool(make_variant(v).lora) for v, _ in e.runs)
 
 
 def _compact(results: dict[str, Any], decimals: int = 5) -> dict[str, Any]:
@@ -114,7 +125,8 @@ def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan, ckpt: P
     from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.deploy.job import run_deployment
 
-    cfg = DeployConfig(episodes=e.episodes, horizon=plan.horizon, budget=plan.budget)
+    cfg = DeployConfig(episodes=e.episodes, horizon=plan.horizon, budget=plan.budget,
+                       lora_in_turn=_lora_in_turn(e, plan))
     results = run_deployment(ckpt, spec["task"], [], [], e.seeds, seed=plan.seed, cfg=cfg,
                              progress=progress, runs=e.runs)
     return _compact(results)
