@@ -47,8 +47,9 @@ def unit_interval(obj: Any, *names: str, open_right: bool = False) -> None:
             _fail(obj, name, "in [0, 1)" if open_right else "in [0, 1]")
 
 
-def booleans(obj: Any, *names: str) -> None:
-    """Each field is True or False."""
+def booleans(obj: Any, *names: str, optional: bool = False) -> None:
+    """Each field is True or False (None also allowed when `optional`)."""
     for name in names:
-        if not isinstance(getattr(obj, name), bool):
-            _fail(obj, name, "True or False")
+        value = getattr(obj, name)
+        if not (isinstance(value, bool) or (optional and value is None)):
+            _fail(obj, name, ("None, " if optional else "") + "True or False")

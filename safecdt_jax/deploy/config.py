@@ -133,8 +133,7 @@ class DeployConfig:
         check.integers(self, "lambda_warmup", "lora_micro_batch", minimum=0)
         check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr")
         check.booleans(self, "lora_dropout", "clip_ctg", "stop_over_budget")
-        if self.lora_in_turn is not None:
-            check.booleans(self, "lora_in_turn")
+        check.booleans(self, "lora_in_turn", optional=True)
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")
         if not 1 <= self.momentum_factor <= self.momentum_max:

@@ -20,7 +20,7 @@ from safecdt_jax.deploy.reweight import replay_weights
 from safecdt_jax.model.cdt import Params
 from safecdt_jax.model.config import CDTConfig
 from safecdt_jax.model.lora import Lora, apply_cdt_lora
-from safecdt_jax.model.optim import micro_batches
+from safecdt_jax.model.optim import micro_batches, sum_over_passes
 
 
 def adapter_optimizer(cfg: DeployConfig) -> optax.GradientTransformation:
@@ -87,17 +87,9 @@ def adapter_gradient(
     if n == 1:
         return grad_fn(lora, base_params, model_cfg, windows, weights, key)
     count = (windows.mask[:, 0] > 0).sum()
-    slices = jax.tree.map(lambda v: v.reshape(n, size // n, *v.shape[1:]), (windows, weights))
-
-    def body(total, xs):
-        i, (win, w) = xs
-        k = None if key is None else jax.random.fold_in(key, i)
-        part = grad_fn(lora, base_params, model_cfg, win, w, k, count)
-        return jax.tree.map(jnp.add, total, part), None
-
-    zeros = jax.tree.map(jnp.zeros_like, (jnp.zeros((), jnp.float32), lora))
-    total, _ = jax.lax.scan(body, zeros, (jnp.arange(n), slices))
-    return total
+    return sum_over_passes(
+        lambda part, k: grad_fn(lora, base_params, model_cfg, *part, k, count),
+        (windows, weights), n, key)
 
 
 def lora_finetune(

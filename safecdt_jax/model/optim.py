@@ -136,21 +136,32 @@ def batch_gradients(
     if n == 1:
         return grad_fn(params, log_temperature, cfg, batch, key)
     norms = loss_normalisers(batch)
-    slices = {k: jnp.reshape(v, (n, size // n, *jnp.shape(v)[1:])) for k, v in batch.items()}
+    (loss, aux), grads = sum_over_passes(
+        lambda part, k: grad_fn(params, log_temperature, cfg, part, k, norms), batch, n, key)
+    # Every slice reports the same temperature; the sum counts it n times.
+    aux = {**aux, "temperature": aux["temperature"] / n}
+    return (loss, aux), grads
+
+
+def sum_over_passes(fn: Callable, batch: Any, n: int, key: jax.Array | None) -> Any:
+    """`sum_i fn(slice_i, key_i)` over `n` equal slices of `batch` along its leading axis, one
+    `lax.scan` step per slice (so one slice's activations are alive at a time); `key_i` =
+    `fold_in(key, i)`, None when `key` is None. `batch` is a pytree of arrays; `fn` returns a
+    pytree of arrays (e.g. a loss and its gradient, already divided by the whole batch's
+    counts, so that the sum is the whole batch's)."""
+    size = jax.tree.leaves(batch)[0].shape[0]
+    slices = jax.tree.map(lambda v: jnp.reshape(v, (n, size // n, *jnp.shape(v)[1:])), batch)
 
     def one(i, part):
-        k = None if key is None else jax.random.fold_in(key, i)
-        return grad_fn(params, log_temperature, cfg, part, k, norms)
+        return fn(part, None if key is None else jax.random.fold_in(key, i))
 
     def body(total, xs):
         return jax.tree.map(jnp.add, total, one(*xs)), None
 
     first = jax.eval_shape(one, 0, jax.tree.map(lambda v: v[0], slices))
     zeros = jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), first)
-    ((loss, aux), grads), _ = jax.lax.scan(body, zeros, (jnp.arange(n), slices))
-    # Every slice reports the same temperature; the sum counts it n times.
-    aux = {**aux, "temperature": aux["temperature"] / n}
-    return (loss, aux), grads
+    total, _ = jax.lax.scan(body, zeros, (jnp.arange(n), slices))
+    return total
 
 
 def make_train_step(

@@ -93,8 +93,7 @@ class PaperPlan:
         check.integers(self, "seed", minimum=0)
         check.positive(self, "budget", "kappa")
         check.booleans(self, "train_baselines")
-        if self.lora_in_turn is not None:
-            check.booleans(self, "lora_in_turn")
+        check.booleans(self, "lora_in_turn", optional=True)
         bad = [p for p in self.pairs if p not in PAIRS]
         if bad or not self.pairs:
             raise ValueError(f"PaperPlan.pairs: unknown pair {', '.join(bad) or '(none)'}; "
