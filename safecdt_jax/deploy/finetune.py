@@ -33,6 +33,11 @@ def init_adapter_opt(lora: Lora, cfg: DeployConfig | None = None) -> optax.OptSt
     return adapter_optimizer(DeployConfig() if cfg is None else cfg).init(lora)
 
 
+def valid_windows(windows: Windows) -> jax.Array:
+    """[N] bool: the windows with a real first step, the ones the loss averages over."""
+    return jnp.asarray(windows.mask)[:, 0] > 0
+
+
 def lora_loss(
     lora: Lora,
     base_params: Params,
@@ -57,7 +62,7 @@ def lora_loss(
     # jnp.where, not a product: padded targets never reach the sum, whatever they hold.
     err = jnp.where(mask[..., None] > 0, out["action_mean"] - windows.actions, 0.0)
     per_window = (err * err).sum(axis=(1, 2)) / jnp.maximum(mask.sum(axis=1), 1.0)
-    valid = mask[:, 0] > 0
+    valid = valid_windows(windows)
     count = valid.sum() if count is None else count
     return (jnp.where(valid, weights * per_window, 0.0).sum()
             / jnp.maximum(count, 1).astype(jnp.float32))
@@ -86,7 +91,7 @@ def adapter_gradient(
     n = micro_batches(size, micro_batch)
     if n == 1:
         return grad_fn(lora, base_params, model_cfg, windows, weights, key)
-    count = (windows.mask[:, 0] > 0).sum()
+    count = valid_windows(windows).sum()
     return sum_over_passes(
         lambda part, k: grad_fn(lora, base_params, model_cfg, *part, k, count),
         (windows, weights), n, key)
@@ -143,7 +148,7 @@ def lora_finetune(
             k_win, buffer, cfg.lora_batch, model_cfg.seq_len, None,
             model_cfg.reward_scale, model_cfg.cost_scale, model_cfg.constant_targets,
         )
-        valid = win.mask[:, 0] > 0
+        valid = valid_windows(win)
         ctg_first = win.costs_to_go[:, 0] / model_cfg.cost_scale  # back to raw cost units
         weights = replay_weights(ctg_first, valid, lam, budget, cfg, enabled=variant.reweight)
         drop_key = k_drop if cfg.lora_dropout else None
