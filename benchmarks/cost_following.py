@@ -132,28 +132,13 @@ def same_experts(cell: dict) -> bool:
 
 
 def parse_overrides(items: list[str]) -> dict:
-    """`["steps=20000", "embed_dim=96"]` -> `{"steps": 20000, "embed_dim": 96}`: values read as
-    int, float or bool where they parse as one, else kept as text. Raises ValueError naming an
-    item without '=' or a field that neither `PretrainConfig` nor `CDTConfig` has."""
+    """`["steps=20000", "embed_dim=96"]` -> `{"steps": 20000, "embed_dim": 96}` for fields of
+    `PretrainConfig` or `CDTConfig` (`validate.field_overrides`)."""
     from safecdt_jax.model import CDTConfig
     from safecdt_jax.pretrain.config import PretrainConfig
+    from safecdt_jax.validate import field_overrides
 
-    fields = {f.name for cls in (PretrainConfig, CDTConfig) for f in dataclasses.fields(cls)}
-    out = {}
-    for item in items:
-        key, eq, text = item.partition("=")
-        if not eq or key not in fields:
-            raise ValueError(f"--set {item!r}: expected FIELD=VALUE with a PretrainConfig or "
-                             f"CDTConfig field")
-        value: object = {"true": True, "false": False}.get(text.lower(), text)
-        for kind in (int, float):
-            if isinstance(value, str):
-                try:
-                    value = kind(text)
-                except ValueError:
-                    pass
-        out[key] = value
-    return out
+    return field_overrides(items, PretrainConfig, CDTConfig)
 
 
 def bar_at_20(median: float) -> float:

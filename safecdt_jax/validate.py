@@ -53,3 +53,28 @@ def booleans(obj: Any, *names: str, optional: bool = False) -> None:
         value = getattr(obj, name)
         if not (isinstance(value, bool) or (optional and value is None)):
             _fail(obj, name, ("None, " if optional else "") + "True or False")
+
+
+def field_overrides(items: list[str], *classes: type) -> dict[str, Any]:
+    """`["steps=20000", "lora_labels=target"]` -> `{"steps": 20000, "lora_labels": "target"}`,
+    the `--set FIELD=VALUE` items of a command line: a value is read as an int, a float or a
+    bool (true/false) where it parses as one, else kept as text. Raises a one-line ValueError
+    for an item without '=' or a field that none of the dataclasses `classes` has."""
+    import dataclasses
+
+    fields = {f.name for cls in classes for f in dataclasses.fields(cls)}
+    out: dict[str, Any] = {}
+    for item in items:
+        key, eq, text = item.partition("=")
+        if not eq or key not in fields:
+            names = "/".join(cls.__name__ for cls in classes)
+            raise ValueError(f"--set {item!r}: expected FIELD=VALUE with a field of {names}")
+        value: Any = {"true": True, "false": False}.get(text.lower(), text)
+        for kind in (int, float):
+            if isinstance(value, str):
+                try:
+                    value = kind(text)
+                except ValueError:
+                    pass
+        out[key] = value
+    return out

@@ -122,3 +122,21 @@ def test_cli_evaluate_bad_input_is_one_clear_line(tiny_run, flag, value, message
     assert result.exit_code == 1
     assert message in result.output and "Traceback" not in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_cli_evaluate_notes_targets_outside_the_training_labels(tiny_run):
+    """One line when a target lies above the labels the checkpoint was trained on, none for a
+    target inside them."""
+    from safecdt_jax.pretrain.checkpoint import load_checkpoint
+
+    _, ckpt, _ = tiny_run
+    support = load_checkpoint(ckpt).meta["token_support"]
+    (r_lo, r_hi), (c_lo, c_hi) = support["return"], support["cost"]
+    inside = f"{(r_lo + r_hi) / 2:.3f}:{(c_lo + c_hi) / 2:.3f}"
+    args = ["evaluate", "--ckpt", str(ckpt), "--task", TASK, "--episodes", "1", "--horizon", "4"]
+    result = CliRunner().invoke(app, [*args, "--targets", inside])
+    assert result.exit_code == 0 and "outside the labels" not in result.output
+    result = CliRunner().invoke(app, [*args, "--targets", f"{inside},{r_hi:.3f}:{c_hi + 50:.3f}"])
+    assert result.exit_code == 0, result.output
+    notes = [line for line in result.output.splitlines() if "outside the labels" in line]
+    assert len(notes) == 1 and f"cost targets {round(c_hi + 50, 2):g}" in notes[0]

@@ -46,6 +46,8 @@ def test_run_end_to_end_then_reuses_data_and_checkpoint(cache):
     ("--pair", "XX-YY", "unknown pair"),
     ("--variant", "bogus", "unknown variant"),
     ("--budget", "-3", "budget must be positive"),
+    ("--set", "lora_labels=luck", "DeployConfig.lora_labels must be one of"),
+    ("--set", "nope=1", "--set 'nope=1': expected FIELD=VALUE with a field of DeployConfig"),
 ])
 def test_run_bad_input_is_one_clear_line(cache, flag, value, message):
     args = [a if a != "PC1-PC2" or flag != "--pair" else value for a in ARGS]
@@ -130,3 +132,22 @@ def test_deploy_act_sample_overrides_the_checkpoint_and_is_recorded(tiny_run, tm
     result = CliRunner().invoke(app, [*base, "--act", "greedy", "--out", str(tmp_path / "x")])
     assert result.exit_code == 1 and "unknown action mode 'greedy'" in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_deploy_set_picks_the_lora_labels_and_records_them(tiny_run, tmp_path):
+    """`--set lora_labels=...` reaches the deployment: the rule is named in results.json, and
+    finetuning on other labels gives other adapters, so other episodes."""
+    ckpt = tiny_run[1]
+    base = ["deploy", "--ckpt", str(ckpt), "--pair", "PC1-PC2", "--variant", "naive_lora",
+            "--seeds", "1", "--episodes", "3", "--horizon", "8"]
+    records = {}
+    for rule in ("stage", "hindsight"):
+        out = tmp_path / rule
+        result = CliRunner().invoke(app, [*base, "--set", f"lora_labels={rule}", "--out",
+                                          str(out)])
+        assert result.exit_code == 0, result.output
+        records[rule] = json.loads((out / "results.json").read_text())
+        assert records[rule]["deploy_config"]["lora_labels"] == rule
+    stage, hindsight = (records[r]["runs"][0]["metrics"] for r in ("stage", "hindsight"))
+    assert stage["cost"][0] == hindsight["cost"][0]  # episode 0 runs before any finetuning
+    assert stage["lora_loss"] != hindsight["lora_loss"]

@@ -167,3 +167,22 @@ def test_nominal_edges_span_the_scaled_ranges_and_leave_linear_tokens_alone():
     assert cfg.cost_edges[0] == 0.0 and cfg.cost_edges[-1] == pytest.approx(10.0)
     linear = CDTConfig.preset("cpu", **SIZES, token_bins=0)
     assert with_nominal_edges(linear) is linear
+
+
+def test_a_span_keeps_targets_below_the_data_apart():
+    """Cost labels from 12.7 up: without a span every target below 12.7 is the same input, with
+    the span (0, 100) the targets 6 and 12 differ, and the data still get their quantile bins."""
+    values = np.linspace(12.7, 69.0, 200)
+    plain = fit_edges(values, 16)
+    assert np.array_equal(piecewise_linear(jnp.array(6.0), plain),
+                          piecewise_linear(jnp.array(12.0), plain))
+    spanned = fit_edges(values, 16, span=(0.0, 100.0))
+    assert len(spanned) == 17 and spanned[0] == 0.0 and spanned[-1] == 100.0
+    np.testing.assert_allclose(spanned[1:-1], fit_edges(values, 14), rtol=1e-6)
+    assert not np.array_equal(piecewise_linear(jnp.array(6.0), spanned),
+                              piecewise_linear(jnp.array(12.0), spanned))
+    assert fit_edges(values, 16, span=(20.0, 50.0)) == plain  # a span inside the data adds none
+    with pytest.raises(ValueError, match="span must be two finite numbers lo < hi"):
+        fit_edges(values, 16, span=(5.0, 5.0))
+    with pytest.raises(ValueError, match="leave none for the values"):
+        fit_edges(values, 2, span=(0.0, 100.0))

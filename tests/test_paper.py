@@ -54,13 +54,21 @@ def test_spec_records_lora_in_turn_only_where_it_changes_bits():
     ckpt = {"task": "CarGoal1", "preset": "cpu", "step": 1, "data": "x"}
     exps = {e.key: e for e in experiments(PaperPlan())}
     main, ctg = exps["CG1-CG2_main"], exps["CG1-CG2_ctg"]  # with LoRA; fixed ratios only
-    batched, in_turn = PaperPlan(lora_in_turn=False), PaperPlan(lora_in_turn=True)
+    batched = PaperPlan(lora_in_turn=False, lora_labels="hindsight")
+    in_turn = PaperPlan(lora_in_turn=True, lora_labels="hindsight")
     assert "lora_in_turn" not in experiment_spec(main, batched, ckpt)
     assert experiment_spec(main, in_turn, ckpt) == {**experiment_spec(main, batched, ckpt),
                                                     "lora_in_turn": True}
     assert experiment_spec(ctg, in_turn, ckpt) == experiment_spec(ctg, batched, ckpt)
+    # The LoRA labels likewise: the paper's hindsight is the records' rule, others are marked.
+    stage = PaperPlan(lora_in_turn=False)
+    assert experiment_spec(main, stage, ckpt) == {**experiment_spec(main, batched, ckpt),
+                                                  "lora_labels": "stage"}
+    assert experiment_spec(ctg, stage, ckpt) == experiment_spec(ctg, batched, ckpt)
     with pytest.raises(ValueError, match=r"PaperPlan\.lora_in_turn"):
         PaperPlan(lora_in_turn="yes")
+    with pytest.raises(ValueError, match=r"PaperPlan\.lora_labels"):
+        PaperPlan(lora_labels="luck")
 
 
 def test_switch_deltas_and_direction_by_hand():

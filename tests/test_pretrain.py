@@ -345,13 +345,20 @@ def test_constant_targets_fit_the_token_edges_on_each_episode_t0_tokens():
     data = make_dataset(np.zeros((2, 4, 3), np.float32), np.zeros((2, 4, 1), np.float32),
                         rewards, costs, [3, 4])
     cfg = CDTConfig(obs_dim=3, act_dim=1, episode_len=4, token_bins=4, cost_scale=0.5)
-    const = fit_token_edges(cfg.replace(constant_targets=True), data, c0=10.0)
+    run_cfg = PretrainConfig(c0=10.0)
+    const = fit_token_edges(cfg.replace(constant_targets=True), data, run_cfg)
     assert const.return_edges[0] == pytest.approx(0.4) and const.return_edges[-1] == \
         pytest.approx(0.6)  # RTG * 0.1 of the t=0 steps only
     assert const.cost_edges == pytest.approx((1.0, 2.0))  # one value, 2 * 0.5: (v, v + 1)
-    to_go = fit_token_edges(cfg, data, c0=10.0)
+    to_go = fit_token_edges(cfg, data, run_cfg)
     assert to_go.return_edges[0] == pytest.approx(0.1)  # the last step of episode 1: 1
     assert to_go.cost_edges[0] == pytest.approx(0.5)
+    # With spans the edges reach past the data at both ends, in raw units times the scales.
+    spans = run_cfg.replace(return_span=(-50.0, 100.0), cost_span=(0.0, 100.0))
+    wide = fit_token_edges(cfg.replace(constant_targets=True), data, spans)
+    assert wide.return_edges[0] == pytest.approx(-5.0) and wide.return_edges[-1] == \
+        pytest.approx(10.0)
+    assert wide.cost_edges == pytest.approx((0.0, 1.0, 50.0))
 
 
 def test_auto_labels_use_the_policies_only_where_the_data_name_them():

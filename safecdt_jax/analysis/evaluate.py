@@ -63,12 +63,14 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     episode at that many steps (default: the task's time limit). `stochastic_actions` acts with
     samples of the policy (True) or its mean (False); None keeps the checkpoint's own setting
     (`CDTConfig.stochastic_actions`). Also returns the targets as `target_return` and
-    `target_cost` [n_targets] (raw units) and how the policy acted (`stochastic_actions`).
+    `target_cost` [n_targets] (raw units), how the policy acted (`stochastic_actions`) and
+    `support_note` (`pretrain.support.support_note`: targets outside the training labels).
     """
     from safecdt_jax import envs
     from safecdt_jax.deploy.rollout import evaluate_targets
     from safecdt_jax.envs.dynamics import apply_dynamics
     from safecdt_jax.pretrain.checkpoint import load_policy, with_action_mode
+    from safecdt_jax.pretrain.support import checkpoint_support, support_note
 
     env, params = envs.make(task)
     params = apply_dynamics(params, dynamics or {})
@@ -79,8 +81,10 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
                                                   episodes, horizon=horizon))
     res = jax.device_get(fn(jax.random.PRNGKey(seed), rets.astype(np.float32),
                             costs.astype(np.float32)))
+    note = support_note(checkpoint_support(policy.meta), rets, costs)
     return {"target_return": rets, "target_cost": costs, "returns": np.asarray(res.returns),
-            "costs": np.asarray(res.costs), "stochastic_actions": policy.cfg.stochastic_actions}
+            "costs": np.asarray(res.costs), "stochastic_actions": policy.cfg.stochastic_actions,
+            "support_note": note}
 
 
 def _ranks(values: np.ndarray) -> np.ndarray:
@@ -178,4 +182,4 @@ def evaluate_checkpoint(ckpt: str | os.PathLike, task: str, targets: list[tuple[
     summary = summarize_evaluation(task, res, data_median)
     return {"checkpoint": os.fspath(ckpt), "seed": seed, "horizon": horizon,
             "dynamics": dict(dynamics or {}), "stochastic_actions": res["stochastic_actions"],
-            **summary}
+            "support_note": res["support_note"], **summary}

@@ -43,21 +43,31 @@ LoraInTurn = Annotated[bool | None, typer.Option(
          "--no-lora-in-turn reproduces results made before 2026-12-05 bit for bit.")]
 
 
+SetFields = Annotated[list[str] | None, typer.Option(
+    "--set", metavar="FIELD=VALUE",
+    help="Set any DeployConfig field (repeatable), e.g. --set lora_labels=hindsight "
+         "--set lora_lr=3e-5.")]
+
+
 def _deploy_config(episodes: int, horizon: int | None, full_episodes: bool = False,
-                   lora_in_turn: bool | None = None) -> DeployConfig:
-    return DeployConfig(episodes=episodes, horizon=horizon, stop_over_budget=not full_episodes,
-                        lora_in_turn=lora_in_turn)
+                   lora_in_turn: bool | None = None, settings: list[str] | None = None
+                   ) -> DeployConfig:
+    from safecdt_jax.validate import field_overrides
+
+    fields = dict(episodes=episodes, horizon=horizon, stop_over_budget=not full_episodes,
+                  lora_in_turn=lora_in_turn)
+    return DeployConfig(**{**fields, **field_overrides(settings or [], DeployConfig)})
 
 
 def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None,
-                dynamics: str | None = None) -> None:
+                dynamics: str | None = None, settings: list[str] | None = None) -> None:
     """Parse and validate variants, budgets, shifts and the config before any long phase."""
     from safecdt_jax.deploy.config import make_variant
     from safecdt_jax.deploy.job import parse_list
     from safecdt_jax.envs.dynamics import parse_dynamics
 
     parse_dynamics(dynamics)
-    cfg = _deploy_config(episodes, horizon)
+    cfg = _deploy_config(episodes, horizon, settings=settings)
     for v in parse_list(variant, str, "variant"):
         make_variant(v, cfg)
     for b in parse_list(budget, float, "budget"):
@@ -71,14 +81,15 @@ Act = Annotated[str, typer.Option(
 
 
 def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed, out, title,
-                      dynamics=None, full_episodes=False, act="checkpoint", lora_in_turn=None):
+                      dynamics=None, full_episodes=False, act="checkpoint", lora_in_turn=None,
+                      settings=None):
     from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.deploy.job import parse_list, run_deployment, write_results
     from safecdt_jax.envs.dynamics import parse_dynamics
 
     variants = parse_list(variant, str, "variant")
     budgets = parse_list(budget, float, "budget")
-    cfg = _deploy_config(episodes, horizon, full_episodes, lora_in_turn)
+    cfg = _deploy_config(episodes, horizon, full_episodes, lora_in_turn, settings)
     results = run_deployment(ckpt, target, variants, budgets, seeds, seed=seed, cfg=cfg,
                              dynamics=parse_dynamics(dynamics),
                              stochastic_actions=parse_action_mode(act))
@@ -105,6 +116,7 @@ def deploy(
     full_episodes: FullEpisodes = False,
     act: Act = "checkpoint",
     lora_in_turn: LoraInTurn = None,
+    settings: SetFields = None,
 ) -> None:
     """Deploys a pretrained CDT in the pair's target task: every variant x budget x dynamics
     shift x seed at once."""
@@ -113,11 +125,11 @@ def deploy(
 
     try:
         _, target = parse_pair(pair)
-        _check_runs(variant, budget, episodes, horizon, dynamics)
+        _check_runs(variant, budget, episodes, horizon, dynamics, settings)
         parse_action_mode(act)
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
                           out or Path("runs") / pair, f"Safe-CDT deployment {pair}", dynamics,
-                          full_episodes, act, lora_in_turn)
+                          full_episodes, act, lora_in_turn, settings)
     except ValueError as e:  # bad pair/variant/budget, CheckpointError: one clean line
         _fail(e)
 
@@ -145,6 +157,7 @@ def run(
     dynamics: Dynamics = None,
     full_episodes: FullEpisodes = False,
     lora_in_turn: LoraInTurn = None,
+    settings: SetFields = None,
 ) -> None:
     """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report."""
     from safecdt_jax.deploy.job import parse_pair
@@ -154,7 +167,7 @@ def run(
     start = time.perf_counter()
     try:
         source, target = parse_pair(pair)
-        _check_runs(variant, budget, episodes, horizon, dynamics)
+        _check_runs(variant, budget, episodes, horizon, dynamics, settings)
         typer.echo(f"[1/3] source data: {source}, {behaviour} behaviour")
         total = (data_episodes or 1000) if behaviour == "scripted" else planned_episodes(
             source, data_episodes)
@@ -171,7 +184,8 @@ def run(
                    f"x {episodes} episodes")
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
                           out or Path("runs") / pair, f"Safe-CDT {pair} ({preset} preset)",
-                          dynamics, full_episodes, lora_in_turn=lora_in_turn)
+                          dynamics, full_episodes, lora_in_turn=lora_in_turn,
+                          settings=settings)
     except ValueError as e:
         _fail(e)
     typer.echo(f"total {time.perf_counter() - start:.0f} s")
@@ -221,6 +235,8 @@ def evaluate(
                                       shifts[0], parse_action_mode(act))
     except (ValueError, OSError) as e:  # bad targets, task, checkpoint or data file: one line
         _fail(e)
+    if summary["support_note"]:
+        typer.echo(summary["support_note"], err=True)
     typer.echo(evaluation_table(summary))
     if out is not None:
         try:

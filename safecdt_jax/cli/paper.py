@@ -27,6 +27,10 @@ def paper(
         help="The seeds' LoRA gradients one after another (faster on a CPU) or batched; "
              "--no-lora-in-turn reuses and reproduces the records made before 2026-12-05.")]
         = None,
+    lora_labels: Annotated[str, typer.Option(
+        help="What the LoRA finetuning windows' tokens read: stage (the mean outcome of the "
+             "episodes run under the same targets), target or hindsight (the paper's; the "
+             "records made before 2026-12-06).")] = "stage",
 ) -> None:
     """Tables 1-7, Figure 2 and the safety certificate, ours beside the paper's, in
     OUT/REPORT.md; finished experiments (OUT/experiments/*.json) are reused, so an
@@ -38,7 +42,7 @@ def paper(
         pair_list = tuple(parse_list(pairs, str, "pair"))
         study = "CG1-CG2" if "CG1-CG2" in pair_list else pair_list[0]
         settings = dict(pairs=pair_list, study_pair=study, preset=preset, seed=seed,
-                        lora_in_turn=lora_in_turn)
+                        lora_in_turn=lora_in_turn, lora_labels=lora_labels)
         plan = (quick_plan(**settings) if quick else
                 PaperPlan(**settings, train_baselines=baselines))
     except ValueError as e:

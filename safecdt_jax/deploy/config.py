@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from safecdt_jax import validate as check
+from safecdt_jax.deploy.labels import LABEL_RULES
 
 
 @dataclass(frozen=True)
@@ -65,6 +66,14 @@ class DeployConfig:
         lora_steps: Adam steps on the adapters after every episode (10).
         lora_batch: replay sequences per step (32), each of the model's context length K.
         lora_lr: Adam learning rate of the adapters (1e-4).
+        lora_labels: what the finetuning windows' return and cost tokens read
+            (`deploy.labels`, docs/METHOD.md section 4). `"stage"` (default): every episode run
+            under the same targets is labelled with their mean return and cost per full
+            episode (pooled over their steps, so an episode cut at the budget counts at the
+            rate it ran), the meaning the `cpu` preset's policy-mean pretraining labels give
+            the tokens. `"target"`: the targets the episode was run under. `"hindsight"`: the
+            episode's own realised totals, the paper's and OSRL's rule, under which the
+            finetuning drove the cost up on CC1->CC2 (docs/METHOD.md section 4).
         lora_dropout: run the CDT with its dropout during adapter training. The paper is
             silent; default False (deterministic forward pass): with 10 steps of 32 sequences per
             episode, dropout noise would dominate the small gradient signal, and the adapters are
@@ -121,6 +130,7 @@ class DeployConfig:
     lora_steps: int = 10
     lora_batch: int = 32
     lora_lr: float = 1e-4
+    lora_labels: str = "stage"
     lora_dropout: bool = False
     lora_in_turn: bool | None = None
     lora_micro_batch: int = 0
@@ -134,6 +144,9 @@ class DeployConfig:
         check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr")
         check.booleans(self, "lora_dropout", "clip_ctg", "stop_over_budget")
         check.booleans(self, "lora_in_turn", optional=True)
+        if self.lora_labels not in LABEL_RULES:
+            raise ValueError(f"DeployConfig.lora_labels must be one of {', '.join(LABEL_RULES)}, "
+                             f"got {self.lora_labels!r}")
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")
         if not 1 <= self.momentum_factor <= self.momentum_max:

@@ -2,12 +2,15 @@
 
 After every episode: `cfg.lora_steps` Adam steps on the adapters only (the base params are a
 constant of the loss), each on `cfg.lora_batch` K-step windows drawn uniformly over the buffer's
-valid (episode, step) positions, RTG/CTG relabelled with what the episodes realized, and the
+valid (episode, step) positions, RTG/CTG tokens read from the episodes' online labels
+(`deploy.labels`: the mean outcome of the episodes run under the same targets by default), and the
 cost-aware weighted behaviour-cloning loss of paper eq. 4-5. A variant without LoRA runs the same
 program and discards the update with `jnp.where`, so its adapters stay bit-identical.
 """
 
 from __future__ import annotations
+
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,6 +34,29 @@ def adapter_optimizer(cfg: DeployConfig) -> optax.GradientTransformation:
 def init_adapter_opt(lora: Lora, cfg: DeployConfig | None = None) -> optax.OptState:
     """Fresh Adam state for `lora` (zero moments, count 0); it does not depend on the lr."""
     return adapter_optimizer(DeployConfig() if cfg is None else cfg).init(lora)
+
+
+class LabelledEpisodes(NamedTuple):
+    """The buffer's episodes with per-episode offsets that move their t = 0 return- and
+    cost-to-go onto their online labels (`deploy.labels`); `sample_windows` reads it."""
+
+    observations: Any
+    actions: Any
+    rewards: Any
+    costs: Any
+    lengths: Any
+    return_offset: Any
+    cost_offset: Any
+
+
+def labelled_episodes(buffer: EpisodeBuffer, labels) -> LabelledEpisodes:
+    """`buffer` with each slot's labels `(return_label, cost_label)` [capacity] (raw units) as
+    offsets from its realised totals, so that its windows' tokens read the labels at t = 0."""
+    ret, cost = labels
+    return LabelledEpisodes(
+        buffer.observations, buffer.actions, buffer.rewards, buffer.costs, buffer.lengths,
+        return_offset=ret - buffer.rewards.sum(axis=1),
+        cost_offset=cost - buffer.costs.sum(axis=1))
 
 
 def valid_windows(windows: Windows) -> jax.Array:
@@ -108,6 +134,7 @@ def lora_finetune(
     budget,
     variant: Variant,
     cfg: DeployConfig,
+    labels=None,
 ) -> tuple[Lora, optax.OptState, dict[str, jax.Array]]:
     """`cfg.lora_steps` Adam steps on the adapters from the online buffer (one `lax.scan`).
 
@@ -123,6 +150,10 @@ def lora_finetune(
         variant: `variant.lora` off (or an empty buffer) returns `lora` and `opt_state`
             bit-identical; `variant.reweight` off makes every replay weight 1.
         cfg: the deployment config (static).
+        labels: None (the paper's hindsight labels: each window's tokens count from what its
+            episode realised), or `(return_label, cost_label)` [capacity] raw per-slot labels
+            from `deploy.labels.online_labels`, which the windows' t = 0 tokens then read. The
+            replay weights always use the realised cost-to-go (docs/METHOD.md section 3).
 
     Returns `(lora, opt_state, aux)`; aux holds per-step arrays [lora_steps]: `loss` (the
     weighted loss before each step's update), `weight_min` (smallest valid replay weight) and
@@ -130,6 +161,7 @@ def lora_finetune(
     """
     opt = adapter_optimizer(cfg)
     on = jnp.asarray(variant.lora) & (buffer_size(buffer) > 0)
+    episodes = buffer if labels is None else labelled_episodes(buffer, labels)
 
     def gradient(lora, base_params, win, weights, drop_key):
         return adapter_gradient(lora, base_params, model_cfg, win, weights, drop_key,
@@ -145,11 +177,13 @@ def lora_finetune(
         lora, opt_state = carry
         k_win, k_drop = jax.random.split(k)
         win = sample_windows(
-            k_win, buffer, cfg.lora_batch, model_cfg.seq_len, None,
+            k_win, episodes, cfg.lora_batch, model_cfg.seq_len, None,
             model_cfg.reward_scale, model_cfg.cost_scale, model_cfg.constant_targets,
         )
         valid = valid_windows(win)
         ctg_first = win.costs_to_go[:, 0] / model_cfg.cost_scale  # back to raw cost units
+        if labels is not None:  # the weights read the realised cost-to-go, not the label
+            ctg_first = ctg_first - episodes.cost_offset[win.episode_index]
         weights = replay_weights(ctg_first, valid, lam, budget, cfg, enabled=variant.reweight)
         drop_key = k_drop if cfg.lora_dropout else None
         loss, grads = gradient(lora, base_params, win, weights, drop_key)

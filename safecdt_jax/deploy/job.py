@@ -11,6 +11,7 @@ import dataclasses
 import itertools
 import json
 import os
+import sys
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -115,6 +116,7 @@ def run_deployment(
     from safecdt_jax.deploy.sweep import stack_specs, sweep
     from safecdt_jax.envs.dynamics import apply_dynamics, params_record, stack_params
     from safecdt_jax.pretrain.run import versions
+    from safecdt_jax.pretrain.support import checkpoint_support, requested_targets, support_note
     from safecdt_jax.progress import Bar
     from safecdt_jax.report.tables import summarize_runs
 
@@ -124,7 +126,11 @@ def run_deployment(
     dynamics = list(dynamics) or [{}]
     pairs = list(itertools.product(variants, budgets)) if runs is None else list(runs)
     combos = [(v, b, shift) for v, b in pairs for shift in dynamics]
-    specs = stack_specs([make_spec(make_variant(v, cfg), b, r_ref) for v, b, _ in combos])
+    parsed = [(make_variant(v, cfg), b) for v, b, _ in combos]
+    specs = stack_specs([make_spec(v, b, r_ref) for v, b in parsed])
+    note = support_note(checkpoint_support(policy.meta), *requested_targets(parsed, cfg, r_ref))
+    if note and progress:
+        print(note, file=sys.stderr)
     per_run = [apply_dynamics(env_params, shift) for _, _, shift in combos]
     # One target for all runs is broadcast (as before shifts existed); several are a run axis.
     batched = len(dynamics) > 1
@@ -165,6 +171,7 @@ def run_deployment(
         "deploy_config": dataclasses.asdict(cfg),
         "model_config": policy.meta["model"],
         "stochastic_actions": policy.cfg.stochastic_actions,  # as acted (may override the ckpt)
+        "support_note": note,
         "versions": versions(),
         "timing": {"deploy_s": wall, "env_steps": steps, "env_steps_per_s": steps / wall},
         "runs": runs,

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from safecdt_jax.data.buffer import buffer_add, buffer_init
 from safecdt_jax.deploy.config import DeployConfig, Variant
 from safecdt_jax.deploy.finetune import init_adapter_opt, lora_finetune
+from safecdt_jax.deploy.labels import online_labels
 from safecdt_jax.deploy.reweight import lambda_init, lambda_update
 from safecdt_jax.deploy.rollout import cdt_episode
 from safecdt_jax.deploy.scheduler import (
@@ -105,7 +106,7 @@ def deploy_init(key: jax.Array, lora_init: Lora, spec: DeploySpec, *, env: Safet
                            model_cfg.act_dim),
         scheduler=scheduler_init(cfg),
         lam=lambda_init(cfg, spec.variant.reweight),
-        history={"costs": zeros, "returns": zeros, "rtg": zeros},
+        history={"costs": zeros, "returns": zeros, "rtg": zeros, "ctg": zeros},
         key=key,
     )
 
@@ -144,15 +145,20 @@ def deploy_episodes(
         h = carry.history
         history = {"costs": h["costs"].at[e].set(ep["cost"]),
                    "returns": h["returns"].at[e].set(ep["return"]),
-                   "rtg": h["rtg"].at[e].set(rtg)}
+                   "rtg": h["rtg"].at[e].set(rtg),
+                   "ctg": h["ctg"].at[e].set(ctg)}
         window = window_mask(e, cfg.episodes, cfg.window)
         violations = history["costs"] > budget
         lam = lambda_update(carry.lam, violations, window, e, cfg, enabled=variant.reweight)
         if finetune:
+            # Buffer slot e holds episode e: its capacity is the deployment's length.
+            labels = None if cfg.lora_labels == "hindsight" else online_labels(
+                cfg.lora_labels, history["returns"], history["costs"], buffer.lengths,
+                history["rtg"], history["ctg"], jnp.arange(cfg.episodes) <= e, buffer.horizon)
             lora, opt_state, aux = lora_finetune(
                 k_lora, carry.lora, carry.opt_state, base_params=base_params,
                 model_cfg=model_cfg, buffer=buffer, lam=lam, budget=budget, variant=variant,
-                cfg=cfg)
+                cfg=cfg, labels=labels)
             loss = jnp.where(variant.lora, aux["loss"][-1], 0.0)
         else:
             lora, opt_state, loss = carry.lora, carry.opt_state, jnp.zeros((), jnp.float32)

@@ -35,14 +35,17 @@ def piecewise_linear(x: jax.Array, edges: tuple[float, ...]) -> jax.Array:
     return jnp.clip((x[..., None] - lo) / width, 0.0, 1.0)
 
 
-def fit_edges(values: np.ndarray, bins: int,
-              weights: np.ndarray | None = None) -> tuple[float, ...]:
+def fit_edges(values: np.ndarray, bins: int, weights: np.ndarray | None = None,
+              span: tuple[float, float] | None = None) -> tuple[float, ...]:
     """At most `bins + 1` strictly increasing edges at evenly spaced quantiles of `values`.
 
     `weights` (same shape, >= 0) weight the quantiles, e.g. by how often training samples each
     step. Repeated quantiles (a value many steps share, such as a cost-to-go of 0) merge, so no
-    bin is empty. A constant input gets the two edges `(v, v + 1)`. Raises ValueError for an
-    empty or non-finite `values` or weights that sum to zero.
+    bin is empty. A constant input gets the two edges `(v, v + 1)`. `span` (lo, hi), same units:
+    the edges reach at least this far; an end of the span beyond the values takes one of the
+    `bins` as an end bin, so that every value in the span is a distinct input even where the
+    values have none (the quantiles then fill the remaining bins). Raises ValueError for an
+    empty or non-finite `values`, weights that sum to zero, or a span with lo >= hi.
     """
     values = np.asarray(values, np.float64).reshape(-1)
     w = np.ones_like(values) if weights is None else np.asarray(weights, np.float64).reshape(-1)
@@ -52,8 +55,17 @@ def fit_edges(values: np.ndarray, bins: int,
         raise ValueError("fit_edges: weights must match the values, be >= 0 and not all zero")
     order = np.argsort(values, kind="stable")
     values, w = values[order][w[order] > 0], w[order][w[order] > 0]
+    below = above = False
+    if span is not None:
+        lo, hi = (float(x) for x in span)
+        if not (np.isfinite(lo) and np.isfinite(hi) and lo < hi):
+            raise ValueError(f"fit_edges: span must be two finite numbers lo < hi, got {span!r}")
+        below, above = lo < values[0], hi > values[-1]
+        if bins - below - above < 1:
+            raise ValueError(f"fit_edges: {bins} bins leave none for the values inside the span")
     cum = (np.cumsum(w) - 0.5 * w) / w.sum()  # each value's mid-point rank in [0, 1]
-    q = np.interp(np.linspace(0.0, 1.0, bins + 1), cum, values)
+    q = np.interp(np.linspace(0.0, 1.0, bins - below - above + 1), cum, values)
+    q = np.concatenate([[lo] if below else [], q, [hi] if above else []])
     # Merge edges closer than float32 rounding of the values, so that no bin is a sliver.
     tol = 1e-5 * max(1.0, float(np.abs(q).max()))
     edges = [float(np.float32(q[0]))]
@@ -67,14 +79,17 @@ def fit_edges(values: np.ndarray, bins: int,
 
 
 def with_token_edges(cfg, returns_to_go: np.ndarray, costs_to_go: np.ndarray,
-                     weights: np.ndarray | None = None, timesteps: np.ndarray | None = None):
+                     weights: np.ndarray | None = None, timesteps: np.ndarray | None = None,
+                     return_span: tuple[float, ...] = (), cost_span: tuple[float, ...] = ()):
     """`cfg` (a `CDTConfig`) with `return_edges` / `cost_edges` fitted to per-step raw values.
 
     `returns_to_go`, `costs_to_go`: arrays of raw (unscaled) RTG and CTG of the steps the model
     will be trained on, `weights` how often each is sampled, `timesteps` their steps in the
     episode (needed with `cfg.token_rates`); the values are scaled by `cfg.reward_scale` /
-    `cfg.cost_scale` (and the steps-left scale) first, as the model's inputs are. A config with
-    `token_bins == 0` is returned unchanged.
+    `cfg.cost_scale` (and the steps-left scale) first, as the model's inputs are.
+    `return_span`, `cost_span`: raw (lo, hi) ranges the edges must cover beyond the values (end
+    bins, `fit_edges`), or () for the values' own range. A config with `token_bins == 0` is
+    returned unchanged.
     """
     if not cfg.token_bins:
         return cfg
@@ -85,8 +100,10 @@ def with_token_edges(cfg, returns_to_go: np.ndarray, costs_to_go: np.ndarray,
             raise ValueError("with_token_edges: token_rates needs the steps' timesteps")
         scale = np.asarray(steps_left_scale(np.asarray(timesteps), cfg.episode_len))
         rtg, ctg = rtg * scale, ctg * scale
-    return cfg.replace(return_edges=fit_edges(rtg, cfg.token_bins, weights),
-                       cost_edges=fit_edges(ctg, cfg.token_bins, weights))
+    r_span = tuple(x * cfg.reward_scale for x in return_span) or None
+    c_span = tuple(x * cfg.cost_scale for x in cost_span) or None
+    return cfg.replace(return_edges=fit_edges(rtg, cfg.token_bins, weights, r_span),
+                       cost_edges=fit_edges(ctg, cfg.token_bins, weights, c_span))
 
 
 def with_nominal_edges(cfg, max_return: float = 60.0, max_cost: float = 100.0):

@@ -54,6 +54,9 @@ class PaperPlan:
         lora_in_turn: `DeployConfig.lora_in_turn` of every deployment (None: on for one CPU
             device). An experiment with LoRA steps run in turn records it in its spec; the
             records made before 2026-12-05 ran batched (False) and still match that.
+        lora_labels: `DeployConfig.lora_labels` of every deployment with LoRA steps
+            ("stage"); an experiment with LoRA records it in its spec unless it is the paper's
+            "hindsight", the rule of every record made before the key existed.
     """
 
     pairs: tuple[str, ...] = ("CG1-CG2", "CC1-CC2", "PC1-PC2")
@@ -82,6 +85,7 @@ class PaperPlan:
     kappa: float = 1.0
     seed: int = 0
     lora_in_turn: bool | None = None
+    lora_labels: str = "stage"
 
     def __post_init__(self) -> None:
         from safecdt_jax.deploy.job import PAIRS
@@ -94,6 +98,11 @@ class PaperPlan:
         check.positive(self, "budget", "kappa")
         check.booleans(self, "train_baselines")
         check.booleans(self, "lora_in_turn", optional=True)
+        from safecdt_jax.deploy.labels import LABEL_RULES
+
+        if self.lora_labels not in LABEL_RULES:
+            raise ValueError(f"PaperPlan.lora_labels must be one of {', '.join(LABEL_RULES)}, "
+                             f"got {self.lora_labels!r}")
         bad = [p for p in self.pairs if p not in PAIRS]
         if bad or not self.pairs:
             raise ValueError(f"PaperPlan.pairs: unknown pair {', '.join(bad) or '(none)'}; "

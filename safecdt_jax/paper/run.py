@@ -39,12 +39,16 @@ def prepare_pair(pair: str, plan: PaperPlan, progress: bool = True) -> Path:
 def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
     """What identifies a pretrained checkpoint in an experiment's spec: its task, preset,
     update count and the fingerprint of the data it was trained on (not its folder, so a
-    clone whose cache lives elsewhere reuses the committed experiments)."""
+    clone whose cache lives elsewhere reuses the committed experiments), and the spans of its
+    token edges where it was trained with them (records made before spans existed have none)."""
     from safecdt_jax.pretrain.checkpoint import read_meta
 
     meta = read_meta(ckpt)
-    return {"task": meta["task"], "preset": meta["preset"], "step": int(meta["step"]),
-            "data": meta["dataset"]["fingerprint"]}
+    out = {"task": meta["task"], "preset": meta["preset"], "step": int(meta["step"]),
+           "data": meta["dataset"]["fingerprint"]}
+    pretrain = meta.get("pretrain", {})
+    spans = {k: pretrain[k] for k in ("return_span", "cost_span") if pretrain.get(k)}
+    return out | spans
 
 
 def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) -> dict[str, Any]:
@@ -59,19 +63,29 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
         spec |= {"task": source if e.task == "source" else target,
                  "runs": [[v, float(b)] for v, b in e.runs], "horizon": plan.horizon,
                  "seed": plan.seed, "stop_over_budget": True, "checkpoint": dict(ckpt_id)}
-        # Only where it changes bits: LoRA steps taken in turn. Batched ones (and runs without
-        # LoRA) keep the spec of the records made before the key existed.
-        return spec | ({"lora_in_turn": True} if _lora_in_turn(e, plan) else {})
+        # Only where it changes bits: LoRA steps taken in turn, LoRA labels other than the
+        # paper's hindsight. Runs without LoRA keep the spec of the records made before.
+        lora = _has_lora(e)
+        spec |= {"lora_in_turn": True} if _lora_in_turn(e, plan) else {}
+        return spec | ({"lora_labels": plan.lora_labels}
+                       if lora and plan.lora_labels != "hindsight" else {})
     return spec | {"algos": list(plan.baseline_algos), "preset": plan.baseline_preset,
                    "stop_over_budget": True, "data": ckpt_id["data"]}
 
 
+def _has_lora(e: Experiment) -> bool:
+    """Whether any run of deployment `e` finetunes its adapters."""
+    from safecdt_jax.deploy.config import make_variant
+
+    return any(bool(make_variant(v).lora) for v, _ in e.runs)
+
+
 def _lora_in_turn(e: Experiment, plan: PaperPlan) -> bool:
     """Whether deployment `e` takes LoRA steps with the seeds' gradients in turn."""
-    from safecdt_jax.deploy.config import DeployConfig, make_variant
+    from safecdt_jax.deploy.config import DeployConfig
 
     in_turn = DeployConfig(lora_in_turn=plan.lora_in_turn).resolved().lora_in_turn
-    return in_turn and any(bool(make_variant(v).lora) for v, _ in e.runs)
+    return in_turn and _has_lora(e)
 
 
 def _compact(results: dict[str, Any], decimals: int = 5) -> dict[str, Any]:
@@ -126,7 +140,7 @@ def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan, ckpt: P
     from safecdt_jax.deploy.job import run_deployment
 
     cfg = DeployConfig(episodes=e.episodes, horizon=plan.horizon, budget=plan.budget,
-                       lora_in_turn=_lora_in_turn(e, plan))
+                       lora_in_turn=_lora_in_turn(e, plan), lora_labels=plan.lora_labels)
     results = run_deployment(ckpt, spec["task"], [], [], e.seeds, seed=plan.seed, cfg=cfg,
                              progress=progress, runs=e.runs)
     return _compact(results)

@@ -32,7 +32,7 @@ RESUMABLE_FIELDS = frozenset({"pretrain.steps", "pretrain.checkpoint_every",
 # Run-config fields added after checkpoints were first written, with the value those older
 # checkpoints were trained with; a meta without them reads as these.
 LEGACY_PRETRAIN = {"scale_actions": False, "standardize_obs": False, "relabel_percent": 0.2,
-                   "labels": "episode", "micro_batch": 0}
+                   "labels": "episode", "micro_batch": 0, "return_span": [], "cost_span": []}
 # Model fields added later, likewise (OSRL's linear token encoding).
 LEGACY_MODEL = {"token_bins": 0, "token_rates": False, "constant_targets": False,
                 "return_edges": [], "cost_edges": []}
@@ -141,7 +141,8 @@ def configs_from_meta(meta: dict[str, Any]) -> tuple[CDTConfig, OptimConfig, Pre
     """The model, optimiser and run configs recorded in a checkpoint's metadata."""
     meta = migrate_meta(meta)
     model = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["model"].items()}
-    pretrain = {**LEGACY_PRETRAIN, **meta["pretrain"]}
+    pretrain = {k: tuple(v) if isinstance(v, list) else v
+                for k, v in {**LEGACY_PRETRAIN, **meta["pretrain"]}.items()}
     return CDTConfig(**model), OptimConfig(**meta["optim"]), PretrainConfig(**pretrain)
 
 

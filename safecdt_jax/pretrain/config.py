@@ -51,6 +51,14 @@ class PretrainConfig:
             saturate there). Measured effects: docs/CDT_FINDINGS.md, sections 1 and 2.
         standardize_obs: train on observations standardised by the data's mean and std (also
             folded into the weights). Off by default: on CarCircle1 it loses the cost response.
+        return_span: raw returns (lo, hi) the return token's ramp edges cover at least, whatever
+            the data hold (`model.tokens.fit_edges`: an end of the span beyond the data's labels
+            takes one of the bins); () for the data's own range. Only with `token_bins`.
+        cost_span: the same for the cost token, raw cost units. Why (the `cpu` preset's
+            (0, 100) and (-50, 100)): with edges at the data's quantiles alone every cost target
+            below the data's lowest label was one input (CarGoal1: 12.7), so the scheduler's
+            tightening below it could not reach the model, and the negative returns of the
+            level-2 tasks' episodes all read as the lowest return (docs/METHOD.md section 0).
         checkpoint_every: write a checkpoint whenever a chunk ends at or past a multiple of this
             many updates (the final step is always saved); 0 saves only at the end.
         max_to_keep: checkpoints kept in the folder (oldest deleted first).
@@ -67,6 +75,8 @@ class PretrainConfig:
     labels: str = "episode"
     scale_actions: bool = False
     standardize_obs: bool = False
+    return_span: tuple[float, ...] = ()
+    cost_span: tuple[float, ...] = ()
     checkpoint_every: int = 2000
     max_to_keep: int = 2
 
@@ -76,6 +86,13 @@ class PretrainConfig:
         check.positive(self, "c0")
         check.booleans(self, "relabel", "scale_actions", "standardize_obs")
         check.positive(self, "relabel_percent")
+        for name in ("return_span", "cost_span"):
+            span = getattr(self, name)
+            if span != () and not (isinstance(span, tuple) and len(span) == 2
+                                   and all(isinstance(x, int | float) for x in span)
+                                   and span[0] < span[1]):
+                raise ValueError(f"PretrainConfig.{name} must be () or (lo, hi) with lo < hi, "
+                                 f"got {span!r}")
         if self.labels not in LABELS:
             raise ValueError(f"PretrainConfig.labels must be one of {', '.join(LABELS)}, "
                              f"got {self.labels!r}")
@@ -98,7 +115,8 @@ _DEFAULTS: dict[str, dict[str, Any]] = {
     # with the model preset's constant ramp tokens, what makes the cost follow its target
     # (docs/CDT_FINDINGS.md sections 13-15 and 17).
     "cpu": dict(steps=10_000, batch_size=32, labels="auto", relabel_percent=1.0,
-                scale_actions=True, standardize_obs=True),
+                scale_actions=True, standardize_obs=True, return_span=(-50.0, 100.0),
+                cost_span=(0.0, 100.0)),
     "osrl": dict(steps=100_000, batch_size=2048),
     "paper": dict(steps=100_000, batch_size=2048),
 }

@@ -47,6 +47,7 @@ from safecdt_jax.pretrain.checkpoint import (
 from safecdt_jax.pretrain.config import PretrainConfig, default_pretrain
 from safecdt_jax.pretrain.loop import History, labelled, prepare_data, stream_key, train
 from safecdt_jax.pretrain.normalize import IONorm, fit_io_norm, normalise_dataset
+from safecdt_jax.pretrain.support import label_support
 
 _PACKAGES = ("safecdt-jax", "jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy")
 
@@ -119,19 +120,21 @@ def _episode_len(data: Dataset, task: str) -> int:
     return sizes[2] if sizes is not None else int(data.horizon)
 
 
-def fit_token_edges(cdt_cfg: CDTConfig, data: Dataset, c0: float) -> CDTConfig:
+def fit_token_edges(cdt_cfg: CDTConfig, data: Dataset, cfg: PretrainConfig) -> CDTConfig:
     """`cdt_cfg` with its token bin edges fitted to the steps pretraining samples: every valid
-    step's RTG and CTG, weighted by its episode's sampling weight `max(0, c0 - C_i)` (OSRL's
-    trajectory weights; Pareto-relabelled copies are not included). Unchanged when
-    `token_bins == 0` or the edges are already set (a resumed or overridden run)."""
+    step's RTG and CTG, weighted by its episode's sampling weight `max(0, cfg.c0 - C_i)` (OSRL's
+    trajectory weights; Pareto-relabelled copies are not included), reaching at least
+    `cfg.return_span` / `cfg.cost_span`. Unchanged when `token_bins == 0` or the edges are
+    already set (a resumed or overridden run)."""
     if not cdt_cfg.token_bins or (cdt_cfg.return_edges and cdt_cfg.cost_edges):
         return cdt_cfg
     valid = data.valid_steps
-    weights = np.broadcast_to(trajectory_weights(data, c0=c0)[:, None], valid.shape)
+    weights = np.broadcast_to(trajectory_weights(data, c0=cfg.c0)[:, None], valid.shape)
     steps = np.broadcast_to(np.arange(valid.shape[1])[None], valid.shape)
     const = cdt_cfg.constant_targets
     rtg, ctg = np.asarray(returns_to_go(data, const)), np.asarray(costs_to_go(data, const))
-    return with_token_edges(cdt_cfg, rtg[valid], ctg[valid], weights[valid], steps[valid])
+    return with_token_edges(cdt_cfg, rtg[valid], ctg[valid], weights[valid], steps[valid],
+                            cfg.return_span, cfg.cost_span)
 
 
 def plan(
@@ -164,7 +167,8 @@ def plan(
                          f"task horizon {episode_len}")
     cdt_cfg = CDTConfig.preset(preset, data.obs_dim, data.act_dim, episode_len,
                                **(model_overrides or {}))
-    cdt_cfg = fit_token_edges(cdt_cfg, labelled(data, cfg), cfg.c0)
+    labels = labelled(data, cfg)
+    cdt_cfg = fit_token_edges(cdt_cfg, labels, cfg)
     meta = {
         "format": FORMAT,
         "task": task,
@@ -175,6 +179,7 @@ def plan(
         "n_params": count_params(param_shapes(cdt_cfg)),
         **config_record(cdt_cfg, optim, cfg),
         "dataset": dataset_record(data_path, data),
+        "token_support": label_support(labels, cfg.c0),
         "versions": versions(),
     }
     if cfg.scale_actions or cfg.standardize_obs:  # a function of the data and these flags

@@ -1,0 +1,73 @@
+"""Return and cost labels of the online buffer's episodes for LoRA finetuning (docs/METHOD.md
+section 4).
+
+Pretraining (the `cpu` preset) teaches the tokens the mean outcome of the policy that drove an
+episode, not the episode's own luck. The online labels have to mean the same thing, or the
+adapters learn a second meaning of the tokens (docs/METHOD.md section 4 says what it did).
+Three rules, chosen by `DeployConfig.lora_labels`:
+
+- `"stage"`: every episode run under the same (RTG, CTG) targets gets the same labels: the mean
+  return and cost per full episode of those episodes, the policy-mean analogue. The means are
+  pooled rates, `sum(totals) / sum(lengths) * horizon`, so an episode cut at the budget counts
+  for the steps it ran at the rate it ran them, and a group whose episodes were cut is labelled
+  above the budget rather than at B + 1 with a truncated return.
+- `"target"`: every episode is labelled with the targets it was run under.
+- `"hindsight"`: each episode's own realised return and cost (the paper's rule, OSRL's labels).
+
+Everything here is a pure function of arrays, jit- and vmap-able.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+LABEL_RULES: tuple[str, ...] = ("stage", "target", "hindsight")
+
+
+def same_targets(rtg, ctg, valid, tolerance: float = 1e-3):
+    """[E, E] bool: episodes i and j were run under the same targets and j is `valid`.
+
+    `rtg`, `ctg` [E] raw targets; targets count as equal within `tolerance` (relative to the
+    larger magnitude, at least 1), so that a ratio that left and came back compares equal."""
+    def close(x):
+        x = jnp.asarray(x, jnp.float32)
+        scale = jnp.maximum(jnp.maximum(jnp.abs(x[:, None]), jnp.abs(x[None, :])), 1.0)
+        return jnp.abs(x[:, None] - x[None, :]) <= tolerance * scale
+
+    return close(rtg) & close(ctg) & jnp.asarray(valid, bool)[None, :]
+
+
+def online_labels(rule: str, returns, costs, lengths, rtg, ctg, valid, horizon: int):
+    """Per-episode `(return_label, cost_label)` [E] in raw units under `rule` (`LABEL_RULES`).
+
+    Args:
+        rule: `"stage"`, `"target"` or `"hindsight"` (static).
+        returns, costs: [E] each episode's realised return and cost (raw units).
+        lengths: [E] its steps (fewer than `horizon` when cut at the budget).
+        rtg, ctg: [E] the raw targets it was run under.
+        valid: [E] bool, the episodes run so far (the others' labels are 0).
+        horizon: steps of a full episode.
+    """
+    valid = jnp.asarray(valid, bool)
+    returns, costs = jnp.asarray(returns, jnp.float32), jnp.asarray(costs, jnp.float32)
+    if rule == "hindsight":
+        ret, cost = returns, costs
+    elif rule == "target":
+        ret, cost = jnp.asarray(rtg, jnp.float32), jnp.asarray(ctg, jnp.float32)
+    elif rule == "stage":
+        group = same_targets(rtg, ctg, valid).astype(jnp.float32)  # [E, E]
+        steps = group @ jnp.asarray(lengths, jnp.float32)
+        per_step = horizon / jnp.maximum(steps, 1.0)
+        ret, cost = (group @ returns) * per_step, (group @ costs) * per_step
+    else:
+        raise ValueError(f"unknown LoRA label rule {rule!r}; choose one of "
+                         f"{', '.join(LABEL_RULES)}")
+    return jnp.where(valid, ret, 0.0), jnp.where(valid, cost, 0.0)
+
+
+def label_offsets(labels, returns, costs):
+    """`(return_offset, cost_offset)` [E]: what shifts each episode's t = 0 return- and
+    cost-to-go (its realised totals) onto its labels, the form `data.windows` reads."""
+    ret, cost = labels
+    return ret - jnp.asarray(returns, jnp.float32), cost - jnp.asarray(costs, jnp.float32)
+
