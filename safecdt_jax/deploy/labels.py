@@ -55,19 +55,14 @@ def online_labels(rule: str, returns, costs, lengths, rtg, ctg, valid, horizon: 
     elif rule == "target":
         ret, cost = jnp.asarray(rtg, jnp.float32), jnp.asarray(ctg, jnp.float32)
     elif rule == "stage":
-        group = same_targets(rtg, ctg, valid).astype(jnp.float32)  # [E, E]
-        steps = group @ jnp.asarray(lengths, jnp.float32)
-        per_step = horizon / jnp.maximum(steps, 1.0)
-        ret, cost = (group @ returns) * per_step, (group @ costs) * per_step
+        group = same_targets(rtg, ctg, valid)  # [E, E]
+        # Masked sums, not a matmul: exact in float32 on every backend (an accelerator's
+        # default matmul precision may round the step counts).
+        pooled = lambda x: jnp.where(group, x[None, :], 0.0).sum(axis=1)
+        per_step = horizon / jnp.maximum(pooled(jnp.asarray(lengths, jnp.float32)), 1.0)
+        ret, cost = pooled(returns) * per_step, pooled(costs) * per_step
     else:
         raise ValueError(f"unknown LoRA label rule {rule!r}; choose one of "
                          f"{', '.join(LABEL_RULES)}")
     return jnp.where(valid, ret, 0.0), jnp.where(valid, cost, 0.0)
-
-
-def label_offsets(labels, returns, costs):
-    """`(return_offset, cost_offset)` [E]: what shifts each episode's t = 0 return- and
-    cost-to-go (its realised totals) onto its labels, the form `data.windows` reads."""
-    ret, cost = labels
-    return ret - jnp.asarray(returns, jnp.float32), cost - jnp.asarray(costs, jnp.float32)
 
