@@ -116,16 +116,27 @@ def test_deployment_over_a_shift_axis_writes_rows_and_the_robustness_figure(tiny
     assert "| safe_cdt [friction_scale=0.25] |" in table and table.count("| zero_shot [") == 3
 
 
-def test_deploy_act_sample_overrides_the_checkpoint_and_is_recorded(tiny_run, tmp_path):
-    ckpt = tiny_run[1]
-    base = ["deploy", "--ckpt", str(ckpt), "--pair", "PC1-PC2", "--variant", "zero_shot",
-            "--seeds", "1", "--episodes", "1", "--horizon", "8"]
+def _tiny_deploy(ckpt, variant: str, episodes: int) -> list[str]:
+    """A one-seed `deploy` command line of the tiny checkpoint in PointCircle2 (8-step episodes)."""
+    return ["deploy", "--ckpt", str(ckpt), "--pair", "PC1-PC2", "--variant", variant,
+            "--seeds", "1", "--episodes", str(episodes), "--horizon", "8"]
+
+
+def _deploy_records(base: list[str], folder, extra: dict[str, list[str]]) -> dict:
+    """Runs `base` plus each entry's extra arguments into `folder/name`; its results.json."""
     records = {}
-    for act in ("checkpoint", "sample"):
-        out = tmp_path / act
-        result = CliRunner().invoke(app, [*base, "--act", act, "--out", str(out)])
+    for name, args in extra.items():
+        out = folder / name
+        result = CliRunner().invoke(app, [*base, *args, "--out", str(out)])
         assert result.exit_code == 0, result.output
-        records[act] = json.loads((out / "results.json").read_text())
+        records[name] = json.loads((out / "results.json").read_text())
+    return records
+
+
+def test_deploy_act_sample_overrides_the_checkpoint_and_is_recorded(tiny_run, tmp_path):
+    base = _tiny_deploy(tiny_run[1], "zero_shot", episodes=1)
+    records = _deploy_records(base, tmp_path, {act: ["--act", act]
+                                               for act in ("checkpoint", "sample")})
     assert records["checkpoint"]["stochastic_actions"] is False  # the tiny ckpt acts by the mean
     assert records["sample"]["stochastic_actions"] is True
     assert records["sample"]["runs"][0]["metrics"] != records["checkpoint"]["runs"][0]["metrics"]
@@ -137,17 +148,11 @@ def test_deploy_act_sample_overrides_the_checkpoint_and_is_recorded(tiny_run, tm
 def test_deploy_set_picks_the_lora_labels_and_records_them(tiny_run, tmp_path):
     """`--set lora_labels=...` reaches the deployment: the rule is named in results.json, and
     finetuning on other labels gives other adapters, so other episodes."""
-    ckpt = tiny_run[1]
-    base = ["deploy", "--ckpt", str(ckpt), "--pair", "PC1-PC2", "--variant", "naive_lora",
-            "--seeds", "1", "--episodes", "3", "--horizon", "8"]
-    records = {}
-    for rule in ("stage", "hindsight"):
-        out = tmp_path / rule
-        result = CliRunner().invoke(app, [*base, "--set", f"lora_labels={rule}", "--out",
-                                          str(out)])
-        assert result.exit_code == 0, result.output
-        records[rule] = json.loads((out / "results.json").read_text())
-        assert records[rule]["deploy_config"]["lora_labels"] == rule
+    base = _tiny_deploy(tiny_run[1], "naive_lora", episodes=3)
+    records = _deploy_records(base, tmp_path, {rule: ["--set", f"lora_labels={rule}"]
+                                               for rule in ("stage", "hindsight")})
+    for rule, record in records.items():
+        assert record["deploy_config"]["lora_labels"] == rule
     stage, hindsight = (records[r]["runs"][0]["metrics"] for r in ("stage", "hindsight"))
     assert stage["cost"][0] == hindsight["cost"][0]  # episode 0 runs before any finetuning
     assert stage["lora_loss"] != hindsight["lora_loss"]

@@ -65,4 +65,3 @@ def online_labels(rule: str, returns, costs, lengths, rtg, ctg, valid, horizon: 
         raise ValueError(f"unknown LoRA label rule {rule!r}; choose one of "
                          f"{', '.join(LABEL_RULES)}")
     return jnp.where(valid, ret, 0.0), jnp.where(valid, cost, 0.0)
-
