@@ -127,7 +127,7 @@ def main() -> None:
             f"--repeats {args.repeats}`, {payload['machine']['date']}, "
             f"{payload['machine']['cpus']}-core CPU, batch 512, CarGoal sizes, OSRL's "
             f"networks.\n\n{table1}\n\n{table2}\n")
-    from safecdt_jax.data.dataset import write_text_atomic
+    from safecdt_jax.io import write_text_atomic
 
     write_text_atomic(OUT / "baselines_throughput.md", text)
     print(text)

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import jax
 
-from safecdt_jax.data.dataset import atomic_path
-from safecdt_jax.report.tables import markdown_table  # noqa: F401  (one home; re-exported)
+from safecdt_jax.io import atomic_path
+from safecdt_jax.results.tables import markdown_table  # noqa: F401  (one home; re-exported)
 
 
 def machine() -> dict:

@@ -23,9 +23,9 @@ import jax
 
 from benchmarks.common import machine, pin_threads, stats, write_json
 from benchmarks.peers import setup
-from benchmarks.peers.report import render
-from safecdt_jax.data.dataset import atomic_path
-from safecdt_jax.pretrain.config import CPU_MICRO_BATCH
+from benchmarks.peers.page import render
+from safecdt_jax.io import atomic_path
+from safecdt_jax.presets import CPU_MICRO_BATCH
 
 ROOT = Path(__file__).resolve().parents[1]
 WORKER = Path(__file__).resolve().parent / "peers" / "worker.py"

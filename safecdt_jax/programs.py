@@ -27,7 +27,6 @@ import functools
 import hashlib
 import os
 import pickle
-import tempfile
 import warnings
 from collections.abc import Callable, Hashable
 from pathlib import Path
@@ -35,6 +34,8 @@ from typing import Any
 
 import jax
 import numpy as np
+
+from safecdt_jax.io import write_bytes_atomic
 
 _FORMAT = 2
 _PACKAGES = ("jax", "jaxlib", "mujoco", "mujoco-mjx", "flax", "optax", "numpy")
@@ -99,18 +100,6 @@ def program_key(name: str, static: str, args: tuple) -> str:
     text = "\n".join([str(_FORMAT), name, static, str(tree), shapes, devices, _environment(),
                       source_digest()])
     return hashlib.sha256(text.encode()).hexdigest()
-
-
-def _write_atomic(path: Path, payload: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(payload)
-        os.replace(tmp, path)
-    except BaseException:
-        os.unlink(tmp)
-        raise
 
 
 def _export(jitted: Callable, args: tuple, donate: tuple[int, ...]) -> tuple[Any, Any]:
@@ -181,7 +170,7 @@ def cached(jitted: Callable, args: tuple, *, name: str, static: Hashable,
         exported, out_tree = _export(jitted, args, donate)
         if any(aval.weak_type for aval in exported.out_avals):
             return jitted  # a stored program would return these strongly typed
-        _write_atomic(path, pickle.dumps({
+        write_bytes_atomic(path, pickle.dumps({
             "format": _FORMAT, "exported": exported.serialize(),
             "in_tree": jax.tree.structure(args), "out_tree": out_tree}))
     except Exception as err:  # e.g. a read-only cache or an op jax.export cannot serialise

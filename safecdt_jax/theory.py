@@ -203,7 +203,7 @@ def certify_file(path: str | os.PathLike, budget: float, alpha: float = 0.05,
 
 def certificate_table(cert: Mapping[str, Any]) -> str:
     """The certificate as markdown: one row per CTG condition, then the budget lines."""
-    from safecdt_jax.report.tables import markdown_table
+    from safecdt_jax.results.tables import markdown_table
 
     rows = [[f"{r['ctg']:g}", r["episodes"], f"{r['phi']:.2f}", f"{r['sigma']:.2f}",
              f"{r['margin']:.2f}", f"{100 * r['violation_rate']:.1f}",

@@ -57,24 +57,28 @@ def booleans(obj: Any, *names: str, optional: bool = False) -> None:
 
 def field_overrides(items: list[str], *classes: type) -> dict[str, Any]:
     """`["steps=20000", "lora_labels=target"]` -> `{"steps": 20000, "lora_labels": "target"}`,
-    the `--set FIELD=VALUE` items of a command line: a value is read as an int, a float or a
-    bool (true/false) where it parses as one, else kept as text. Raises a one-line ValueError
-    for an item without '=' or a field that none of the dataclasses `classes` has."""
+    the `--set FIELD=VALUE` items of a command line: a value is read as an int, a float, a
+    bool (true/false) or None (none) where it parses as one, else kept as text. Raises a
+    one-line ValueError for an item without '=' or a field that none of the dataclasses
+    `classes` has."""
     import dataclasses
 
-    fields = {f.name for cls in classes for f in dataclasses.fields(cls)}
+    fields = {f.name: f for cls in classes for f in dataclasses.fields(cls)}
     out: dict[str, Any] = {}
     for item in items:
         key, eq, text = item.partition("=")
         if not eq or key not in fields:
             names = "/".join(cls.__name__ for cls in classes)
             raise ValueError(f"--set {item!r}: expected FIELD=VALUE with a field of {names}")
-        value: Any = {"true": True, "false": False}.get(text.lower(), text)
+        value: Any = {"true": True, "false": False, "none": None}.get(text.lower(), text)
         for kind in (int, float):
             if isinstance(value, str):
                 try:
                     value = kind(text)
                 except ValueError:
                     pass
+        if isinstance(value, int) and not isinstance(value, bool) and "float" in str(
+                fields[key].type):
+            value = float(value)  # `cost_offset=1` means 1.0, as the config's type says
         out[key] = value
     return out

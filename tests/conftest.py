@@ -18,15 +18,15 @@ jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory):
-    """(data path, checkpoint path, folder): a 4-episode PointCircle1 data set (20 steps each)
-    and a tiny CDT pretrained for 2 updates, built once for every test that only needs some
-    valid checkpoint to evaluate or deploy."""
-    from safecdt_jax.data.collect import collect, write_collected
+    """(data path, checkpoint path, folder): a 4-episode PointCircle1 data set of the committed
+    experts (20 steps each) and a tiny CDT pretrained for 2 updates, built once for every test
+    that only needs some valid checkpoint to evaluate or deploy."""
+    from data_helpers import write_expert_episodes
+
     from safecdt_jax.pretrain import default_pretrain, pretrain
 
     tmp = tmp_path_factory.mktemp("tiny_run")
-    data = write_collected(tmp / "PointCircle1.hdf5",
-                           collect(jax.random.PRNGKey(0), "PointCircle1", 4, horizon=20))
+    data = write_expert_episodes(tmp / "PointCircle1.hdf5")
     cfg = default_pretrain("tiny", steps=2, chunk=2)
     ckpt = pretrain(data, tmp / "ckpt", preset="tiny", config=cfg, progress=False).path
     return data, ckpt, tmp

@@ -32,7 +32,7 @@ def test_spearman_known_values():
     targets = [10, 20, 40, 80]
     assert spearman(targets, [2.6, 5.3, 7.4, 18.2]) == pytest.approx(1.0)
     assert spearman(targets, [18.2, 7.4, 5.3, 2.6]) == pytest.approx(-1.0)
-    # PointCircle1 seed 3 (docs/CDT_FINDINGS.md, section 5): ranks 3, 1, 2, 4.
+    # PointCircle1 seed 3 (docs/research/cdt-findings.md, section 5): ranks 3, 1, 2, 4.
     assert spearman(targets, [92.6, 72.7, 90.2, 133.7]) == pytest.approx(0.4)
     # One swapped pair of four: exactly 0.8, so a ">= 0.8" criterion passes.
     assert spearman(targets, [15.8, 22.4, 34.5, 28.0]) >= 0.8

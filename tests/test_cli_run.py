@@ -8,7 +8,7 @@ from typer.testing import CliRunner
 from safecdt_jax.cli import app
 
 ARGS = ["run", "--pair", "PC1-PC2", "--preset", "tiny", "--data-episodes", "32", "--steps", "20",
-        "--seeds", "2", "--episodes", "2", "--horizon", "20", "--variant", "safe_cdt,zero_shot"]
+        "--seeds", "2", "--episodes", "2", "--set", "horizon=20", "--variant", "safe_cdt,zero_shot"]
 
 
 @pytest.fixture()
@@ -62,15 +62,13 @@ def test_run_bad_input_is_one_clear_line(cache, flag, value, message):
 def test_deployment_uses_the_checkpoints_token_scales(tmp_path):
     # A model only understands the RTG / CTG token scales it was trained with: they are part of
     # its config, saved with the checkpoint, and the deployment has no scales of its own.
-    import jax
+    from data_helpers import write_expert_episodes
 
-    from safecdt_jax.data.collect import collect, write_collected
     from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.deploy.job import run_deployment
     from safecdt_jax.pretrain import default_pretrain, pretrain
 
-    data = write_collected(tmp_path / "PointCircle1.hdf5",
-                           collect(jax.random.PRNGKey(0), "PointCircle1", 4, horizon=20))
+    data = write_expert_episodes(tmp_path / "PointCircle1.hdf5")
     cfg = default_pretrain("tiny", steps=2, chunk=2)
     ckpt = pretrain(data, tmp_path / "ckpt", preset="tiny", config=cfg, progress=False,
                     model_overrides={"reward_scale": 0.2, "cost_scale": 0.25}).path
@@ -78,22 +76,6 @@ def test_deployment_uses_the_checkpoints_token_scales(tmp_path):
                          cfg=DeployConfig(episodes=1, horizon=5), progress=False)
     assert (res["model_config"]["reward_scale"], res["model_config"]["cost_scale"]) == (0.2, 0.25)
     assert "cost_scale" not in res["deploy_config"]
-
-
-def test_old_checkpoints_keep_their_token_scales():
-    """Checkpoints written before the encoding moved into CDTConfig kept the scales in the run
-    config: they are read back into the model config, and the cpu defaults stay as trained."""
-    from safecdt_jax.pretrain.checkpoint import config_diff, configs_from_meta, migrate_meta
-
-    old = {"model": {"obs_dim": 28, "act_dim": 2, "episode_len": 500, "cost_offset": 5.0},
-           "optim": {}, "pretrain": {"steps": 3, "reward_scale": 0.1, "cost_scale": 0.1}}
-    model, _, run = configs_from_meta(old)
-    assert (model.reward_scale, model.cost_scale, model.cost_offset) == (0.1, 0.1, 5.0)
-    assert not hasattr(run, "cost_scale")
-    assert migrate_meta(old)["model"]["cost_scale"] == 0.1 and old["pretrain"]["cost_scale"]
-    new = {"model": {**old["model"], "reward_scale": 0.1, "cost_scale": 0.1}, "optim": {},
-           "pretrain": {"steps": 3}}
-    assert config_diff(old, new) == []  # an old cached checkpoint is reused, not retrained
 
 
 def test_deployment_over_a_shift_axis_writes_rows_and_the_robustness_figure(tiny_run, tmp_path):
@@ -119,7 +101,7 @@ def test_deployment_over_a_shift_axis_writes_rows_and_the_robustness_figure(tiny
 def _tiny_deploy(ckpt, variant: str, episodes: int) -> list[str]:
     """A one-seed `deploy` command line of the tiny checkpoint in PointCircle2 (8-step episodes)."""
     return ["deploy", "--ckpt", str(ckpt), "--pair", "PC1-PC2", "--variant", variant,
-            "--seeds", "1", "--episodes", str(episodes), "--horizon", "8"]
+            "--seeds", "1", "--episodes", str(episodes), "--set", "horizon=8"]
 
 
 def _deploy_records(base: list[str], folder, extra: dict[str, list[str]]) -> dict:

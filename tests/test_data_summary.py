@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from safecdt_jax.data import make_dataset, summarize_dataset, write_dataset
-from safecdt_jax.data.dataset import write_text_atomic
 from safecdt_jax.data.summary import between_group_share
+from safecdt_jax.io import write_text_atomic
 
 COSTS = [0.0, 10.0, 25.0, 31.0, 100.0, 150.0]
 RETURNS = [1.0, 2.0, 3.0, 4.0, 5.0, 6.0]

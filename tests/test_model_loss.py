@@ -19,8 +19,8 @@ from safecdt_jax.model import (
     make_optimizer,
     make_train_step,
     micro_batches,
-    temperature_loss,
 )
+from safecdt_jax.model.loss import temperature_loss
 from safecdt_jax.pretrain import PretrainConfig
 
 CFG = CDTConfig.preset("tiny", obs_dim=5, act_dim=2, episode_len=30)

@@ -46,27 +46,20 @@ def test_experiments_of_the_default_plan():
     assert exps["PC1-PC2_source_ctg"].task == "source"
 
 
-def test_spec_records_lora_in_turn_only_where_it_changes_bits():
-    """Records made before `lora_in_turn` existed (batched) keep matching a batched plan; a plan
-    taking LoRA steps in turn marks its LoRA experiments, and only those, as different."""
+def test_spec_records_how_lora_ran_only_where_it_changes_bits():
+    """A LoRA experiment's spec names its labels and whether its seeds' LoRA gradients ran in
+    turn (as this CPU resolves it); an experiment without LoRA shares its record across both."""
     from safecdt_jax.paper.run import experiment_spec
 
     ckpt = {"task": "CarGoal1", "preset": "cpu", "step": 1, "data": "x"}
     exps = {e.key: e for e in experiments(PaperPlan())}
     main, ctg = exps["CG1-CG2_main"], exps["CG1-CG2_ctg"]  # with LoRA; fixed ratios only
-    batched = PaperPlan(lora_in_turn=False, lora_labels="hindsight")
-    in_turn = PaperPlan(lora_in_turn=True, lora_labels="hindsight")
-    assert "lora_in_turn" not in experiment_spec(main, batched, ckpt)
-    assert experiment_spec(main, in_turn, ckpt) == {**experiment_spec(main, batched, ckpt),
-                                                    "lora_in_turn": True}
-    assert experiment_spec(ctg, in_turn, ckpt) == experiment_spec(ctg, batched, ckpt)
-    # The LoRA labels likewise: the paper's hindsight is the records' rule, others are marked.
-    stage = PaperPlan(lora_in_turn=False)
-    assert experiment_spec(main, stage, ckpt) == {**experiment_spec(main, batched, ckpt),
-                                                  "lora_labels": "stage"}
-    assert experiment_spec(ctg, stage, ckpt) == experiment_spec(ctg, batched, ckpt)
-    with pytest.raises(ValueError, match=r"PaperPlan\.lora_in_turn"):
-        PaperPlan(lora_in_turn="yes")
+    stage, hindsight = PaperPlan(), PaperPlan(lora_labels="hindsight")
+    spec = experiment_spec(main, stage, ckpt)
+    assert (spec["lora_in_turn"], spec["lora_labels"]) == (True, "stage")  # one CPU device
+    assert experiment_spec(main, hindsight, ckpt) == {**spec, "lora_labels": "hindsight"}
+    assert "lora_labels" not in experiment_spec(ctg, stage, ckpt)
+    assert experiment_spec(ctg, stage, ckpt) == experiment_spec(ctg, hindsight, ckpt)
     with pytest.raises(ValueError, match=r"PaperPlan\.lora_labels"):
         PaperPlan(lora_labels="luck")
 

@@ -15,6 +15,7 @@ from safecdt_jax.cli import app
 from safecdt_jax.data import episode_returns, load_dataset, make_dataset, write_dataset
 from safecdt_jax.model import OptimConfig, init_train_state
 from safecdt_jax.paths import checkpoint_dir
+from safecdt_jax.presets import CPU_MICRO_BATCH
 from safecdt_jax.pretrain import (
     CheckpointError,
     PretrainConfig,
@@ -29,9 +30,8 @@ from safecdt_jax.pretrain import (
     prepare_data,
     pretrain,
     run_key,
-    stream_key,
 )
-from safecdt_jax.pretrain.config import CPU_MICRO_BATCH
+from safecdt_jax.pretrain.loop import stream_key
 from safecdt_jax.pretrain.normalize import IONorm, fold_io_norm
 
 TASK = "Synthetic"
@@ -78,7 +78,7 @@ def _assert_trees_equal(a, b):
 def test_config_defaults_and_validation():
     cpu = default_pretrain("cpu")
     assert cpu.relabel and (cpu.c0, cpu.steps, cpu.batch_size) == (70.0, 10_000, 32)
-    assert (cpu.relabel_percent, cpu.labels) == (1.0, "auto")  # docs/CDT_FINDINGS.md 15, 17
+    assert (cpu.relabel_percent, cpu.labels) == (1.0, "auto")  # docs/METHOD.md section 8
     assert cpu.scale_actions and cpu.standardize_obs
     osrl = default_pretrain("osrl")
     assert (osrl.relabel_percent, osrl.labels) == (0.2, "episode")  # OSRL's
@@ -135,6 +135,7 @@ def test_save_load_round_trip(full_run, data_file):
     assert checkpoint_steps(full_run.path) == [20, 40, 60]
     ckpt = load_checkpoint(full_run.path)
     _assert_trees_equal(ckpt.params, _raw_params(full_run))
+    _assert_trees_equal(full_run.policy().params, ckpt.params)  # raw units, not the state's
     cdt_cfg, optim, cfg = configs_from_meta(ckpt.meta)
     assert ckpt.cfg == cdt_cfg and optim == OPTIM and cfg == CFG
     assert cdt_cfg.episode_len == 16 and cdt_cfg.obs_dim == 5  # no env named Synthetic: data's
@@ -215,6 +216,18 @@ def test_cli_pretrain_and_ensure_checkpoint(data_file, tmp_path, monkeypatch):
     with pytest.raises(CheckpointError, match=r"pretrain\.seed: 0 -> 1"):
         ensure_checkpoint(data_file, TASK, "tiny", 40, seed=1, **kw)
 
+    # A checkpoint of an older format is not read: an error, or retrained with overwrite.
+    from safecdt_jax.pretrain.checkpoint import FORMAT, read_meta, restore_state, save_checkpoint
+
+    meta = read_meta(out)
+    model, optim, _ = configs_from_meta(meta)
+    save_checkpoint(out, restore_state(out, model, optim), {**meta, "format": FORMAT - 1})
+    with pytest.raises(CheckpointError, match=f"checkpoint format {FORMAT - 1}, this code "
+                                              f"reads {FORMAT}"):
+        ensure_checkpoint(data_file, TASK, "tiny", 40, **kw)
+    assert ensure_checkpoint(data_file, TASK, "tiny", 40, overwrite=True, **kw) == out
+    assert read_meta(out)["format"] == FORMAT
+
 
 def test_plan_task_and_default_folder(data_file, tmp_path, monkeypatch):
     from safecdt_jax.pretrain.run import plan
@@ -252,7 +265,7 @@ def test_shuffle_gaps_are_zero_for_a_token_the_model_cannot_see(full_run, data_f
     assert out["costs_to_go"] == 0.0 and out["returns_to_go"] != 0.0
     with pytest.raises(ValueError, match="windows must be >= 2"):
         conditioning_gaps(full_run.path, data_file, windows=1)
-    cli = CliRunner().invoke(app, ["diagnose", "--ckpt", str(full_run.path), "--data",
+    cli = CliRunner().invoke(app, ["analyze", "diagnose", "--ckpt", str(full_run.path), "--data",
                                    str(data_file), "--windows", "64", "--seed", "3"])
     assert cli.exit_code == 0, cli.output
     assert f"| costs_to_go | {gaps['costs_to_go']:.5f} |" in cli.output
@@ -261,8 +274,8 @@ def test_shuffle_gaps_are_zero_for_a_token_the_model_cannot_see(full_run, data_f
 def test_cli_cost_token_options_reach_the_checkpoint(data_file, tmp_path):
     runner, out = CliRunner(), tmp_path / "token"
     args = ["pretrain", "--data", str(data_file), "--preset", "tiny", "--steps", "3",
-            "--batch", "4", "--chunk", "1", "--out", str(out)]
-    result = runner.invoke(app, [*args, "--cost-scale", "0.025", "--cost-offset", "1"])
+            "--batch", "4", "--set", "chunk=1", "--out", str(out)]
+    result = runner.invoke(app, [*args, "--set", "cost_scale=0.025", "--set", "cost_offset=1"])
     assert result.exit_code == 0, result.output
     meta = load_checkpoint(out).meta
     assert meta["model"]["cost_scale"] == 0.025 and meta["model"]["cost_offset"] == 1.0
@@ -273,7 +286,7 @@ def test_cli_cost_token_options_reach_the_checkpoint(data_file, tmp_path):
     assert "(first chunk -> mean of the last 3)" in result.output
     model = configs_from_meta(meta)[0]  # what evaluate and deploy will use
     assert (model.reward_scale, model.cost_scale) == (0.1, 0.025)
-    bad = runner.invoke(app, [*args, "--overwrite", "--cost-scale", "0"])
+    bad = runner.invoke(app, [*args, "--overwrite", "--set", "cost_scale=0"])
     assert bad.exit_code == 1 and "error: CDTConfig.cost_scale" in bad.output
 
 
@@ -295,9 +308,9 @@ def test_cli_token_encoding_and_policy_labels_reach_the_checkpoint(data_file, tm
     data, path = _two_policy_data(tmp_path)
     runner, out = CliRunner(), tmp_path / "ramps"
     args = ["pretrain", "--data", str(path), "--preset", "tiny", "--steps", "2", "--batch", "4",
-            "--chunk", "1", "--out", str(out)]
-    result = runner.invoke(app, [*args, "--token-bins", "4", "--token-rates",
-                                 "--labels", "policy"])
+            "--set", "chunk=1", "--out", str(out)]
+    result = runner.invoke(app, [*args, "--set", "token_bins=4", "--set", "token_rates=true",
+                                 "--set", "labels=policy"])
     assert result.exit_code == 0, result.output
     ckpt = load_checkpoint(out)
     model, _, pre = configs_from_meta(ckpt.meta)
@@ -309,10 +322,10 @@ def test_cli_token_encoding_and_policy_labels_reach_the_checkpoint(data_file, tm
     assert model.return_edges[0] <= min(means) and model.return_edges[-1] >= max(means)
     policy = load_policy(out, TASK)
     assert policy.cfg.return_edges == model.return_edges
-    bad = runner.invoke(app, [*args, "--overwrite", "--labels", "luck"])
+    bad = runner.invoke(app, [*args, "--overwrite", "--set", "labels=luck"])
     assert bad.exit_code == 1 and "error: PretrainConfig.labels" in bad.output
     no_policies = runner.invoke(app, [*args[:2], str(data_file), *args[3:], "--overwrite",
-                                      "--labels", "policy"])
+                                      "--set", "labels=policy"])
     assert no_policies.exit_code == 1 and "episode_info['snapshot']" in no_policies.output
 
 
@@ -321,19 +334,6 @@ def test_relabel_percent_sets_the_number_of_copies():
     data = synthetic_dataset(n=200)
     copies = [prepare_data(data, CFG.replace(relabel_percent=p))[2] for p in (0.2, 1.0)]
     assert copies == [14, 71]  # int(0.2 |F|) and int(1.0 |F|), |F| = 71 filtered episodes
-
-
-def test_metas_from_before_the_token_options_match_todays_defaults(full_run):
-    from safecdt_jax.pretrain.checkpoint import config_diff
-
-    meta = full_run.meta
-    old = {**meta, "model": {k: v for k, v in meta["model"].items() if k not in (
-        "token_bins", "token_rates", "return_edges", "cost_edges")},
-        "pretrain": {k: v for k, v in meta["pretrain"].items()
-                     if k not in ("labels", "relabel_percent")}}
-    assert config_diff(old, meta) == []
-    ramps = {**meta, "model": {**meta["model"], "token_bins": 4}}
-    assert config_diff(old, ramps) == ["model.token_bins: 0 -> 4"]
 
 
 def test_constant_targets_fit_the_token_edges_on_each_episode_t0_tokens():
@@ -378,16 +378,16 @@ def test_auto_labels_use_the_policies_only_where_the_data_name_them():
 def test_cli_pretrain_keeps_the_cpu_presets_defaults_unless_told(tmp_path):
     _, path = _two_policy_data(tmp_path)
     args = ["pretrain", "--data", str(path), "--preset", "cpu", "--steps", "1", "--batch", "2",
-            "--chunk", "1"]
+            "--set", "chunk=1"]
     result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "a")])
     assert result.exit_code == 0, result.output
     model, _, pre = configs_from_meta(load_checkpoint(tmp_path / "a").meta)
     assert (pre.labels, pre.relabel_percent, pre.scale_actions, pre.standardize_obs) == (
         "auto", 1.0, True, True)
     assert model.token_bins == 16 and model.constant_targets and not model.stochastic_actions
-    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b"), "--no-scale-actions",
-                                      "--labels", "episode", "--relabel-percent", "0.2",
-                                      "--stochastic-actions"])
+    result = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "b"), "--set",
+                                      "scale_actions=false", "--set", "labels=episode", "--set",
+                                      "relabel_percent=0.2", "--set", "stochastic_actions=true"])
     assert result.exit_code == 0, result.output
     model, _, pre = configs_from_meta(load_checkpoint(tmp_path / "b").meta)
     assert (pre.labels, pre.relabel_percent, pre.scale_actions) == ("episode", 0.2, False)

@@ -8,16 +8,13 @@ from typer.testing import CliRunner
 
 from safecdt_jax.cli import app
 from safecdt_jax.data import load_dataset, make_dataset, write_dataset
-from safecdt_jax.model import CDTConfig, OptimConfig, init_cdt
+from safecdt_jax.model import CDTConfig, init_cdt
 from safecdt_jax.model.cdt import apply_cdt, dummy_batch, newest_action
 from safecdt_jax.pretrain import (
-    PretrainConfig,
-    config_diff,
     configs_from_meta,
     load_checkpoint,
     restore_state,
 )
-from safecdt_jax.pretrain.checkpoint import config_record
 from safecdt_jax.pretrain.normalize import (
     IONorm,
     fit_io_norm,
@@ -116,9 +113,9 @@ def _car_like_file(tmp_path):
 def test_checkpoint_records_and_folds_the_normalisation(tmp_path, normalize):
     """Through the CLI: the normalisation flags reach the checkpoint, which loads folded."""
     path, out = _car_like_file(tmp_path), tmp_path / "ckpt"
-    flags = ["--scale-actions", "--standardize-obs"] if normalize else []
+    flags = ["--set", "scale_actions=true", "--set", "standardize_obs=true"] if normalize else []
     args = ["pretrain", "--data", str(path), "--preset", "tiny", "--steps", "20", "--batch",
-            "16", "--chunk", "20", "--out", str(out), *flags]
+            "16", "--set", "chunk=20", "--out", str(out), *flags]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 0, result.output
     ckpt = load_checkpoint(out)
@@ -136,16 +133,3 @@ def test_checkpoint_records_and_folds_the_normalisation(tmp_path, normalize):
         np.testing.assert_array_equal(a, b)
 
 
-def test_a_checkpoint_from_before_the_flags_reads_as_unnormalised():
-    """Its meta has no `scale_actions` / `standardize_obs` / `micro_batch`: same run as both
-    False and one pass, so a cached checkpoint is reused, not retrained; a request with a flag
-    on differs."""
-    new = config_record(CFG, OptimConfig(), PretrainConfig())
-    old = {**new, "pretrain": {k: v for k, v in new["pretrain"].items()
-                               if k not in ("scale_actions", "standardize_obs", "micro_batch")}}
-    assert config_diff(old, new) == []
-    assert configs_from_meta(old)[2] == PretrainConfig()
-    flagged = config_record(CFG, OptimConfig(), PretrainConfig(scale_actions=True))
-    assert config_diff(old, flagged) == ["pretrain.scale_actions: False -> True"]
-    split = config_record(CFG, OptimConfig(), PretrainConfig(micro_batch=8))
-    assert config_diff(old, split) == ["pretrain.micro_batch: 0 -> 8"]

@@ -88,10 +88,10 @@ def test_certify_command_prints_the_table(tmp_path):
 
     path = tmp_path / "results.json"
     path.write_text(json.dumps(_results([[0.0, 40.0]], [[6.0, 6.0]])))
-    res = CliRunner().invoke(app, ["certify", str(path), "--budget", "30",
+    res = CliRunner().invoke(app, ["analyze", "certify", str(path), "--budget", "30",
                                    "--out", str(tmp_path / "cert.json")])
     assert res.exit_code == 0, res.output
     assert "Critical budget" in res.output
     assert json.loads((tmp_path / "cert.json").read_text())["conditions"][0]["phi"] == 20.0
-    bad = CliRunner().invoke(app, ["certify", str(tmp_path / "missing.json")])
+    bad = CliRunner().invoke(app, ["analyze", "certify", str(tmp_path / "missing.json")])
     assert bad.exit_code == 1

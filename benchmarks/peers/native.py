@@ -1,4 +1,4 @@
-"""Native Safety-Gymnasium rollouts for `benchmarks.sim2sim`; runs inside the peer venv.
+"""Native Safety-Gymnasium rollouts for `experiments.sim2sim`; runs inside the peer venv.
 
     .peers/safety-gymnasium/bin/python benchmarks/peers/native.py REQUEST.json OUT.npz
 
@@ -8,7 +8,7 @@ It imports only the peer's packages, never this project. Requests (JSON):
   random actions in [-1, 1]^2 (`actions` null) or the given open-loop script (from rest).
 - `{"cmd": "policy", "task": ..., "weights": "policy.npz", "episodes": 16, "seed": 0,
   "deterministic": true}`: an exported expert (a tanh MLP on normalised observations, see
-  `benchmarks.sim2sim.export_policy`); per-episode return, cost and goals.
+  `experiments.sim2sim.export_policy`); per-episode return, cost and goals.
 - `{"cmd": "contacts", "task": "CarGoal1", "actions": [[a0, a1], ...], "steps": 300,
   "start": 150, "seed": 0}`: per constant action (held from rest), the mean over steps
   `start`..`steps` of each ground contact's force on the car in the chassis frame (left wheel,

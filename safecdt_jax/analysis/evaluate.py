@@ -6,7 +6,7 @@ how well its cost follows the cost target.
     summary = summarize_evaluation("PointCircle1", res, data_median=median)
     print(evaluation_table(summary))   # per-target means, Spearman, the data's median cost
 
-The cost-following check of a pretrained CDT (docs/CDT_FINDINGS.md) reads off the summary: the
+The cost-following check of a pretrained CDT (docs/METHOD.md section 9) reads off the summary: the
 Spearman rank correlation of the mean episode cost with the cost target at one return target
 (>= 0.8 wanted), and the mean cost at a low target against the data's median episode cost.
 """
@@ -51,6 +51,19 @@ def parse_action_mode(text: str) -> bool | None:
     return ACTION_MODES[text]
 
 
+def _evaluate_targets(key, env, env_params, params, cfg, target_returns, target_costs, episodes,
+                      horizon):
+    from safecdt_jax.deploy.rollout import evaluate_targets
+
+    return evaluate_targets(key, env, env_params, params, cfg, target_returns, target_costs,
+                            episodes, horizon=horizon)
+
+
+# Params, env params and targets are arguments, not constants: every checkpoint of one shape
+# shares one compiled program (a closure over the params recompiled per checkpoint).
+_evaluate = jax.jit(_evaluate_targets, static_argnames=("env", "cfg", "episodes", "horizon"))
+
+
 def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[float, float]],
                     episodes: int, seed: int = 0, horizon: int | None = None,
                     dynamics: dict[str, float] | None = None,
@@ -67,7 +80,6 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     `support_note` (`pretrain.support.support_note`: targets outside the training labels).
     """
     from safecdt_jax import envs
-    from safecdt_jax.deploy.rollout import evaluate_targets
     from safecdt_jax.envs.dynamics import apply_dynamics
     from safecdt_jax.pretrain.checkpoint import load_policy, with_action_mode
     from safecdt_jax.pretrain.support import checkpoint_support, support_note
@@ -77,10 +89,9 @@ def evaluate_policy(ckpt: str | os.PathLike, task: str, targets: list[tuple[floa
     policy = with_action_mode(load_policy(ckpt, task=task), stochastic_actions)
     rets = np.array([t[0] for t in targets])  # float64: reported as given
     costs = np.array([t[1] for t in targets])
-    fn = jax.jit(lambda k, r, c: evaluate_targets(k, env, params, policy.params, policy.cfg, r, c,
-                                                  episodes, horizon=horizon))
-    res = jax.device_get(fn(jax.random.PRNGKey(seed), rets.astype(np.float32),
-                            costs.astype(np.float32)))
+    res = jax.device_get(_evaluate(jax.random.PRNGKey(seed), env, params, policy.params,
+                                   policy.cfg, rets.astype(np.float32), costs.astype(np.float32),
+                                   episodes, horizon=horizon))
     note = support_note(checkpoint_support(policy.meta), rets, costs)
     return {"target_return": rets, "target_cost": costs, "returns": np.asarray(res.returns),
             "costs": np.asarray(res.costs), "stochastic_actions": policy.cfg.stochastic_actions,

@@ -60,7 +60,7 @@ def parse_algos(text: str) -> list[str]:
 def summarize(returns: np.ndarray, costs: np.ndarray, budget: float) -> dict[str, float]:
     """Mean and population std over seeds of the per-seed mean return, mean cost and VR (% of
     episodes costing more than `budget`), from [seeds, episodes] arrays."""
-    from safecdt_jax.report.tables import summarize_runs
+    from safecdt_jax.results.tables import summarize_runs
 
     return summarize_runs({"return": returns, "cost": costs, "violation": costs > budget})
 
@@ -77,9 +77,10 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
     returns them. `steps` overrides the preset's updates (Q-learning) or BC's steps.
     Checkpoints go to `ckpt_dir/<algo>` (default `out/ckpt`) and are reused when config, data
     and seeds match."""
-    from safecdt_jax.deploy.job import parse_pair
     from safecdt_jax.experts.collect import ensure_source_data
-    from safecdt_jax.pretrain.run import dataset_record, versions
+    from safecdt_jax.pairs import parse_pair
+    from safecdt_jax.pretrain.run import dataset_record
+    from safecdt_jax.versions import versions
 
     source, target = parse_pair(pair)
     if not (isinstance(seeds, int) and seeds >= 1):
@@ -147,7 +148,7 @@ def _cell(mean: float, std: float) -> str:
 def baselines_table(results: dict[str, Any], extra: Sequence[dict] = ()) -> str:
     """The paper's Table 7 rows for our runs, with the paper's reward, cost and VR beside (for a
     Safe-CDT row from a `run`, the paper's Table 4 / Table 1 row)."""
-    from safecdt_jax.report.tables import markdown_table
+    from safecdt_jax.results.tables import markdown_table
 
     paper = PAPER_TABLE7.get(results["pair"], {}) | (
         {"safe_cdt": PAPER_SAFE_CDT[results["pair"]]} if results["pair"] in PAPER_SAFE_CDT
@@ -173,7 +174,7 @@ def plot_scatter(methods: Sequence[dict], budget: float, title: str,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from safecdt_jax.report.figures import save_png
+    from safecdt_jax.results.figures import save_png
 
     fig, ax = plt.subplots(figsize=(5.5, 4))
     for m in methods:
@@ -191,7 +192,7 @@ def plot_scatter(methods: Sequence[dict], budget: float, title: str,
 
 def write_baselines(out: str | os.PathLike, results: dict[str, Any]) -> list[Path]:
     """Writes `baselines.json`, `baselines.md` and `baselines_scatter.png` into `out`."""
-    from safecdt_jax.data.dataset import write_text_atomic
+    from safecdt_jax.io import write_text_atomic
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

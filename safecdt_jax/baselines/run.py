@@ -173,8 +173,8 @@ def train_baseline(cfg: BaselineConfig, data: Dataset, seeds: Sequence[int],
 def train_bc(kind: str, data: Dataset, seeds: Sequence[int], budget: float,
              steps: int | None = None, progress: bool = True) -> Trained:
     """BC-All (every episode) or BC-Safe (the episodes of cost <= `budget`), OSRL's behaviour
-    cloning baselines: `analysis.bc.fit_bc` per seed, the policies stacked for evaluation."""
-    from safecdt_jax.analysis.bc import BCConfig, bc_action, fit_bc
+    cloning baselines: `baselines.bc.fit_bc_seeds`, every seed in one vmapped program."""
+    from safecdt_jax.baselines.bc import BCConfig, bc_action, fit_bc_seeds
 
     if kind not in BC_ALGOS:
         raise ValueError(f"unknown behaviour-cloning baseline {kind!r}; choose from "
@@ -182,19 +182,16 @@ def train_bc(kind: str, data: Dataset, seeds: Sequence[int], budget: float,
     cfg = BCConfig(max_cost=budget if kind == "bc_safe" else None,
                    **({} if steps is None else {"steps": steps}))
     start = time.perf_counter()
-    fitted = []
-    for s in seeds:
-        policy, loss = fit_bc(jax.random.PRNGKey(int(s)), data, cfg)
-        fitted.append((policy, loss))
-        if progress:
-            print(f"{kind} seed {s}: final loss {loss[-1]:.4f}", flush=True)
-    params = jax.tree.map(lambda *x: jnp.stack(x), *(p for p, _ in fitted))
+    keys = jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+    params, loss = fit_bc_seeds(keys, data, cfg)
+    if progress:
+        print(f"{kind} seeds {', '.join(str(s) for s in seeds)}: final loss "
+              + ", ".join(f"{v:.4f}" for v in loss[:, -1]), flush=True)
     record = dataclasses.asdict(cfg) | {"algo": kind}
-    norm = IONorm(*(np.asarray(x) for x in (fitted[0][0].obs_mean, fitted[0][0].obs_std,
-                                            fitted[0][0].action_scale)))
+    norm = IONorm(*(np.asarray(x[0]) for x in (params.obs_mean, params.obs_std,
+                                               params.action_scale)))
     return Trained(kind, record, [int(s) for s in seeds], params, norm,
-                   lambda p, obs, key: bc_action(p, obs),
-                   {"loss": np.stack([loss for _, loss in fitted])},
+                   lambda p, obs, key: bc_action(p, obs), {"loss": loss},
                    time.perf_counter() - start, False)
 
 

@@ -1,13 +1,28 @@
-"""The one Typer app every `safecdt-jax` subcommand registers on."""
+"""The one Typer app every `safecdt-jax` subcommand registers on, its `analyze` group, and the
+one way a command reports bad input."""
 
 import os
+from typing import NoReturn
 
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
 import typer
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
                   help="Safe-CDT in JAX: environments, offline data, CDT, safe deployment.")
+analyze = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode="markdown",
+                      help="Analyses of data sets, checkpoints, results and environments.")
+app.add_typer(analyze, name="analyze")
+
+# The exit status of every error a command reports itself (bad input, a missing or unfit file);
+# typer's own usage errors (an unknown option, a value out of range) keep click's status 2.
+ERROR_EXIT = 1
+
+
+def fail(error: Exception | str) -> NoReturn:
+    """Print `error: <message>` as one line on stderr and exit with `ERROR_EXIT`."""
+    typer.echo(f"error: {error}", err=True)
+    raise typer.Exit(ERROR_EXIT) from (error if isinstance(error, Exception) else None)
 
 
 @app.callback()

@@ -6,7 +6,7 @@ from typing import Annotated
 import typer
 
 from safecdt_jax.baselines.config import PRESET_NAMES
-from safecdt_jax.cli.app import app
+from safecdt_jax.cli.app import app, fail
 
 
 @app.command()
@@ -44,6 +44,5 @@ def baselines(
         run_baselines(pair, names, seeds, budget, preset, episodes, folder, data_path=data,
                       steps=steps, stop_over_budget=not full_episodes, overwrite=overwrite)
     except ValueError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
+        fail(e)
     typer.echo((folder / "baselines.md").read_text())

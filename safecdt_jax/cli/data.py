@@ -1,4 +1,4 @@
-"""`safecdt-jax collect` and `safecdt-jax data-summary`: behaviour data sets and their coverage."""
+"""`safecdt-jax collect` and `safecdt-jax analyze data`: source data sets and their coverage."""
 
 import time
 from pathlib import Path
@@ -6,49 +6,41 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app
-
-
-def _fail(message: str) -> None:
-    """Exit with a one-line error (typer's own usage errors print a multi-line box)."""
-    typer.echo(f"error: {message}", err=True)
-    raise typer.Exit(2)
+from safecdt_jax.cli.app import analyze, app, fail
 
 
 @app.command("collect")
 def collect_cmd(
     task: Annotated[str, typer.Option(help="Task, e.g. CarGoal1: {Car,Point}{Goal,Circle}{1,2}.")],
     episodes: Annotated[int | None, typer.Option(
-        help="Episodes kept (default: DSRL's count for experts, 1000 scripted).")] = None,
+        help="Episodes kept (default: DSRL's count for the task).")] = None,
     out: Annotated[Path | None, typer.Option(
         help="Output HDF5 file (default: the cache's datasets/TASK.hdf5, TASK-executed.hdf5 "
-             "with --actions executed).")] = None,
+             "with --record-actions executed).")] = None,
     seed: Annotated[int, typer.Option(help="PRNG seed (layouts, action noise, filter).")] = 0,
-    behaviour: Annotated[str, typer.Option(
-        help="'expert': roll out the task's committed PPO-Lagrangian snapshots and grid-filter "
-             "them as DSRL does; 'scripted': the scripted drivers.")] = "expert",
     snapshots: Annotated[Path | None, typer.Option(
         help="Expert snapshot file (default: the committed one of TASK).")] = None,
     actions: Annotated[str, typer.Option(
+        "--record-actions",
         help="How expert actions are recorded: 'sampled' (the Gaussian sample clipped to "
              "[-1, 1], DSRL's convention, the default) or 'executed' (the Car's torques "
              "clipped to +-0.02; docs/EXPERTS.md).")] = "sampled",
 ) -> None:
-    """Collects behaviour episodes of a task into a DSRL-format HDF5 file."""
+    """Rolls out the task's PPO-Lagrangian expert snapshots and grid-filters the episodes to
+    DSRL's size, into a DSRL-format HDF5 file."""
     from safecdt_jax import envs
     if task not in envs.NAMES:
-        _fail(f"unknown task {task!r}; valid names: {', '.join(envs.NAMES)}")
+        fail(f"unknown task {task!r}; valid names: {', '.join(envs.NAMES)}")
     if episodes is not None and episodes < 1:
-        _fail(f"--episodes must be at least 1, got {episodes}")
+        fail(f"--episodes must be at least 1, got {episodes}")
 
     import jax
     from tqdm import tqdm
 
     from safecdt_jax import paths
-    from safecdt_jax.data.collect import check_writable, collect, write_collected
+    from safecdt_jax.data.collect import check_writable, write_collected
     from safecdt_jax.experts.collect import (
         ACTION_RECORDINGS,
-        BEHAVIOURS,
         expert_dataset,
         planned_episodes,
         snapshot_path,
@@ -56,41 +48,33 @@ def collect_cmd(
     )
 
     try:
-        if behaviour not in BEHAVIOURS:
-            raise ValueError(f"unknown --behaviour {behaviour!r}; choose one of "
-                             f"{', '.join(BEHAVIOURS)}")
         if actions not in ACTION_RECORDINGS:
-            raise ValueError(f"unknown --actions {actions!r}; choose one of "
+            raise ValueError(f"unknown --record-actions {actions!r}; choose one of "
                              f"{', '.join(ACTION_RECORDINGS)}")
-        if behaviour == "expert" and snapshots is None:
+        if snapshots is None:
             snapshot_path(task)
         path = check_writable(paths.dataset_path(task, actions) if out is None else out)
     except ValueError as e:
-        _fail(str(e))
+        fail(str(e))
     start = time.perf_counter()
     key = jax.random.PRNGKey(seed)
-    if behaviour == "scripted":
-        n = episodes or 1000
-        with tqdm(total=n, desc=f"collect {task}", unit="ep") as bar:
-            data = collect(key, task, n, progress=bar.update, seed=seed)
-    else:
-        total = planned_episodes(task, episodes) if snapshots is None else None
-        with tqdm(total=total, desc=f"roll out {task} experts", unit="ep") as bar:
-            data = expert_dataset(key, task, size=target_size(task, episodes),
-                                  snapshots=snapshots, progress=bar.update, seed=seed,
-                                  actions=actions)
+    total = planned_episodes(task, episodes) if snapshots is None else None
+    with tqdm(total=total, desc=f"roll out {task} experts", unit="ep") as bar:
+        data = expert_dataset(key, task, size=target_size(task, episodes),
+                              snapshots=snapshots, progress=bar.update, seed=seed,
+                              actions=actions)
     collected = time.perf_counter()
     try:
         write_collected(path, data)
     except OSError as e:
-        _fail(f"cannot write {path}: {e}")
+        fail(f"cannot write {path}: {e}")
     done = time.perf_counter()
     typer.echo(f"wrote {data.n_episodes} episodes ({int(data.lengths.sum()):,} transitions) of "
                f"{task} to {path} in {done - start:.1f} s (collect {collected - start:.1f} s "
                f"incl. compile, write {done - collected:.1f} s)")
 
 
-@app.command("data-summary")
+@analyze.command("data")
 def data_summary(
     path: Annotated[Path, typer.Argument(help="A DSRL-format HDF5 file (ours or DSRL's).")],
     png: Annotated[Path | None, typer.Option(
@@ -107,9 +91,9 @@ def data_summary(
         data = load_dataset(path)
         s = summarize_dataset(data, png_path=png)
     except DatasetError as e:
-        _fail(str(e))
+        fail(str(e))
     except OSError as e:
-        _fail(f"cannot write {png}: {e}")
+        fail(f"cannot write {png}: {e}")
     attrs = data.attrs
     origin = ", ".join(f"{k} {attrs[k]}" for k in ("collector_version", "seed") if k in attrs)
     typer.echo(f"{attrs.get('task', path.name)}: {s['n_episodes']} episodes, "

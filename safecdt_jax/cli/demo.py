@@ -1,13 +1,13 @@
-"""`safecdt-jax demo`: a random policy in every task (return, cost, env steps/s)."""
+"""`safecdt-jax analyze envs`: a random policy in every task (return, cost, env steps/s)."""
 
 import time
 
 import typer
 
-from safecdt_jax.cli.app import app
+from safecdt_jax.cli.app import analyze, fail
 
 
-@app.command()
+@analyze.command("envs")
 def demo(
     tasks: str = typer.Option("all", help="Comma-separated task names, or 'all'."),
     episodes: int = typer.Option(16, min=1, help="Random-policy episodes per task (one batch)."),
@@ -23,7 +23,7 @@ def demo(
     names = envs.NAMES if tasks == "all" else tuple(t.strip() for t in tasks.split(","))
     for name in names:
         if name not in envs.NAMES:
-            raise typer.BadParameter(f"unknown task {name!r}; valid: {', '.join(envs.NAMES)}")
+            fail(f"unknown task {name!r}; valid: {', '.join(envs.NAMES)}")
     rows = []
     for name in tqdm(names, desc="tasks", unit="task"):
         env, params = envs.make(name)

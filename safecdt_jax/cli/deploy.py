@@ -6,7 +6,7 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app
+from safecdt_jax.cli.app import app, fail
 from safecdt_jax.deploy.config import VARIANT_SPECS, DeployConfig
 from safecdt_jax.progress import Bar
 
@@ -25,49 +25,28 @@ Dynamics = Annotated[str | None, typer.Option(
          "mass_scale.")]
 
 
-def _fail(e: Exception) -> None:
-    typer.echo(f"error: {e}", err=True)
-    raise typer.Exit(1) from e
-
-
-FullEpisodes = Annotated[bool, typer.Option(
-    help="Run every episode to the time limit instead of ending it at the first step over "
-         "the budget (the paper's runtime budget, the default).")]
-
-
-LoraInTurn = Annotated[bool | None, typer.Option(
-    "--lora-in-turn/--no-lora-in-turn", show_default="on for one CPU device, else off",
-    help="Compute the seeds' LoRA gradients one seed after another instead of as one batched "
-         "product. On a CPU the activations stay in cache: a 15-seed sweep's LoRA steps ran "
-         "1.5-2.2x faster, the whole sweep 1.2-1.5x; the same adapters to float rounding. "
-         "--no-lora-in-turn reproduces results made before 2026-12-05 bit for bit.")]
-
-
 SetFields = Annotated[list[str] | None, typer.Option(
     "--set", metavar="FIELD=VALUE",
-    help="Set any DeployConfig field (repeatable), e.g. --set lora_labels=hindsight "
-         "--set lora_lr=3e-5.")]
+    help="Set any DeployConfig field (repeatable), e.g. --set horizon=200 (cut every episode "
+         "there), --set stop_over_budget=false (full episodes), --set lora_labels=hindsight "
+         "(the paper's labels), --set lora_in_turn=false; docs/CLI.md lists them.")]
 
 
-def _deploy_config(episodes: int, horizon: int | None, full_episodes: bool = False,
-                   lora_in_turn: bool | None = None, settings: list[str] | None = None
-                   ) -> DeployConfig:
+def _deploy_config(episodes: int, settings: list[str] | None = None) -> DeployConfig:
     from safecdt_jax.validate import field_overrides
 
-    fields = dict(episodes=episodes, horizon=horizon, stop_over_budget=not full_episodes,
-                  lora_in_turn=lora_in_turn)
-    return DeployConfig(**{**fields, **field_overrides(settings or [], DeployConfig)})
+    return DeployConfig(**{"episodes": episodes, **field_overrides(settings or [], DeployConfig)})
 
 
-def _check_runs(variant: str, budget: str, episodes: int, horizon: int | None,
-                dynamics: str | None = None, settings: list[str] | None = None) -> None:
+def _check_runs(variant: str, budget: str, episodes: int, dynamics: str | None = None,
+                settings: list[str] | None = None) -> None:
     """Parse and validate variants, budgets, shifts and the config before any long phase."""
     from safecdt_jax.deploy.config import make_variant
     from safecdt_jax.deploy.job import parse_list
     from safecdt_jax.envs.dynamics import parse_dynamics
 
     parse_dynamics(dynamics)
-    cfg = _deploy_config(episodes, horizon, settings=settings)
+    cfg = _deploy_config(episodes, settings)
     for v in parse_list(variant, str, "variant"):
         make_variant(v, cfg)
     for b in parse_list(budget, float, "budget"):
@@ -80,16 +59,15 @@ Act = Annotated[str, typer.Option(
          "sample (a sample of the policy's Gaussian each step).")]
 
 
-def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed, out, title,
-                      dynamics=None, full_episodes=False, act="checkpoint", lora_in_turn=None,
-                      settings=None):
+def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, seed, out, title,
+                      dynamics=None, act="checkpoint", settings=None):
     from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.deploy.job import parse_list, run_deployment, write_results
     from safecdt_jax.envs.dynamics import parse_dynamics
 
     variants = parse_list(variant, str, "variant")
     budgets = parse_list(budget, float, "budget")
-    cfg = _deploy_config(episodes, horizon, full_episodes, lora_in_turn, settings)
+    cfg = _deploy_config(episodes, settings)
     results = run_deployment(ckpt, target, variants, budgets, seeds, seed=seed, cfg=cfg,
                              dynamics=parse_dynamics(dynamics),
                              stochastic_actions=parse_action_mode(act))
@@ -108,30 +86,26 @@ def deploy(
     budget: Budgets = DEFAULT_BUDGET,
     seeds: Seeds = 15,
     episodes: Episodes = _DEFAULT.episodes,
-    horizon: Annotated[int | None, typer.Option(
-        min=1, help="Cut every episode at this many steps (default: the task's).")] = None,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
-    full_episodes: FullEpisodes = False,
     act: Act = "checkpoint",
-    lora_in_turn: LoraInTurn = None,
     settings: SetFields = None,
 ) -> None:
     """Deploys a pretrained CDT in the pair's target task: every variant x budget x dynamics
     shift x seed at once."""
     from safecdt_jax.analysis.evaluate import parse_action_mode
-    from safecdt_jax.deploy.job import parse_pair
+    from safecdt_jax.pairs import parse_pair
 
     try:
         _, target = parse_pair(pair)
-        _check_runs(variant, budget, episodes, horizon, dynamics, settings)
+        _check_runs(variant, budget, episodes, dynamics, settings)
         parse_action_mode(act)
-        _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
+        _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, seed,
                           out or Path("runs") / pair, f"Safe-CDT deployment {pair}", dynamics,
-                          full_episodes, act, lora_in_turn, settings)
+                          act, settings)
     except ValueError as e:  # bad pair/variant/budget, CheckpointError: one clean line
-        _fail(e)
+        fail(e)
 
 
 @app.command()
@@ -143,36 +117,26 @@ def run(
     variant: Variants = "safe_cdt",
     preset: Annotated[str, typer.Option(help="CDT preset: tiny, cpu, osrl, paper.")] = "cpu",
     data_episodes: Annotated[int | None, typer.Option(
-        min=1, help="Source data set size (default: DSRL's for experts, 1000 scripted).")] = None,
-    behaviour: Annotated[str, typer.Option(
-        help="Source data: 'expert' (committed PPO-Lagrangian snapshots, DSRL's grid filter) "
-             "or 'scripted' (scripted drivers).")] = "expert",
+        min=1, help="Source data set size (default: DSRL's for the task).")] = None,
     steps: Annotated[int | None, typer.Option(
         min=1, help="Pretraining updates (default: the preset's).")] = None,
-    horizon: Annotated[int | None, typer.Option(
-        min=1, help="Cut every deployment episode at this many steps (default: the task's).")
-    ] = None,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
-    full_episodes: FullEpisodes = False,
-    lora_in_turn: LoraInTurn = None,
     settings: SetFields = None,
 ) -> None:
     """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report."""
-    from safecdt_jax.deploy.job import parse_pair
     from safecdt_jax.experts.collect import ensure_source_data, planned_episodes
+    from safecdt_jax.pairs import parse_pair
     from safecdt_jax.pretrain.run import ensure_checkpoint
 
     start = time.perf_counter()
     try:
         source, target = parse_pair(pair)
-        _check_runs(variant, budget, episodes, horizon, dynamics, settings)
-        typer.echo(f"[1/3] source data: {source}, {behaviour} behaviour")
-        total = (data_episodes or 1000) if behaviour == "scripted" else planned_episodes(
-            source, data_episodes)
-        with Bar(total, f"collect {source}") as bar:
-            data = ensure_source_data(source, behaviour, data_episodes, seed, progress=bar.update)
+        _check_runs(variant, budget, episodes, dynamics, settings)
+        typer.echo(f"[1/3] source data: {source}, expert behaviour")
+        with Bar(planned_episodes(source, data_episodes), f"collect {source}") as bar:
+            data = ensure_source_data(source, data_episodes, seed, progress=bar.update)
         typer.echo(f"      {data}")
         typer.echo(f"[2/3] pretrained CDT: preset {preset}")
         # The cache is run's own: a checkpoint of older data (e.g. recollected after a
@@ -182,12 +146,11 @@ def run(
         shifted = f", dynamics {dynamics}" if dynamics else ""
         typer.echo(f"[3/3] deployment: {target}{shifted}, {variant}, B={budget}, {seeds} seeds "
                    f"x {episodes} episodes")
-        _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, horizon, seed,
+        _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, seed,
                           out or Path("runs") / pair, f"Safe-CDT {pair} ({preset} preset)",
-                          dynamics, full_episodes, lora_in_turn=lora_in_turn,
-                          settings=settings)
+                          dynamics, settings=settings)
     except ValueError as e:
-        _fail(e)
+        fail(e)
     typer.echo(f"total {time.perf_counter() - start:.0f} s")
 
 
@@ -222,8 +185,8 @@ def evaluate(
             parse_targets,
         )
         from safecdt_jax.data import summarize_dataset
-        from safecdt_jax.data.dataset import write_text_atomic
         from safecdt_jax.envs.dynamics import parse_dynamics
+        from safecdt_jax.io import write_text_atomic
 
         pairs = parse_targets(targets)
         shifts = parse_dynamics(dynamics)
@@ -234,7 +197,7 @@ def evaluate(
         summary = evaluate_checkpoint(ckpt, task, pairs, episodes, seed, horizon, median,
                                       shifts[0], parse_action_mode(act))
     except (ValueError, OSError) as e:  # bad targets, task, checkpoint or data file: one line
-        _fail(e)
+        fail(e)
     if summary["support_note"]:
         typer.echo(summary["support_note"], err=True)
     typer.echo(evaluation_table(summary))
@@ -242,5 +205,5 @@ def evaluate(
         try:
             write_text_atomic(out, json.dumps(summary, indent=1))
         except OSError as e:
-            _fail(e)
+            fail(e)
         typer.echo(f"wrote {out}")

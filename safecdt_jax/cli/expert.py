@@ -6,8 +6,7 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app
-from safecdt_jax.cli.data import _fail
+from safecdt_jax.cli.app import app, fail
 
 
 @app.command("expert")
@@ -38,7 +37,12 @@ def expert_cmd(
 
     from safecdt_jax import paths
     from safecdt_jax.experts.config import CostSchedule, expert_preset
-    from safecdt_jax.experts.export import plot_curves, write_curves, write_snapshots
+    from safecdt_jax.experts.export import (
+        plot_curves,
+        write_curves,
+        write_snapshots,
+        write_tensorboard,
+    )
     from safecdt_jax.experts.run import train_experts
 
     try:
@@ -47,7 +51,7 @@ def expert_cmd(
         cfg = expert_preset(preset, task=task, steps=steps,
                             **{k: v for k, v in given.items() if v is not None})
     except ValueError as e:
-        _fail(str(e))
+        fail(e)
     out = paths.cache_root() / "experts" / task if out is None else out
     start = time.perf_counter()
     runs = len(schedules) * seeds
@@ -66,9 +70,10 @@ def expert_cmd(
             result = train_experts(cfg, schedules, range(seeds), out=out, chunk_rounds=chunk,
                                    resume=resume, progress=progress)
         except ValueError as e:
-            _fail(str(e))
+            fail(e)
     write_curves(out / "curves.json", result)
     plot_curves(out / "curves.png", result)
+    write_tensorboard(out / "tensorboard", result)
     typer.echo(f"trained {runs} experts x {cfg.rounds * cfg.num_envs * cfg.horizon:,} env steps "
                f"in {time.perf_counter() - start:.0f} s; curves {out / 'curves.png'}")
     for label, r, c in zip(result.labels, result.curves["return"], result.curves["cost"],

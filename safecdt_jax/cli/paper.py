@@ -5,7 +5,7 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app, enable_persistent_cache
+from safecdt_jax.cli.app import app, enable_persistent_cache, fail
 
 
 @app.command()
@@ -22,15 +22,10 @@ def paper(
         help="Train the baselines that are not cached (default on, off with --quick).")]
         = True,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
-    lora_in_turn: Annotated[bool | None, typer.Option(
-        "--lora-in-turn/--no-lora-in-turn", show_default="on for one CPU device, else off",
-        help="The seeds' LoRA gradients one after another (faster on a CPU) or batched; "
-             "--no-lora-in-turn reuses and reproduces the records made before 2026-12-05.")]
-        = None,
     lora_labels: Annotated[str, typer.Option(
         help="What the LoRA finetuning windows' tokens read: stage (the mean outcome of the "
-             "episodes run under the same targets), target or hindsight (the paper's; the "
-             "records made before 2026-12-06).")] = "stage",
+             "episodes run under the same targets), target or hindsight (the paper's).")]
+        = "stage",
 ) -> None:
     """Tables 1-7, Figure 2 and the safety certificate, ours beside the paper's, in
     OUT/REPORT.md; finished experiments (OUT/experiments/*.json) are reused, so an
@@ -42,12 +37,11 @@ def paper(
         pair_list = tuple(parse_list(pairs, str, "pair"))
         study = "CG1-CG2" if "CG1-CG2" in pair_list else pair_list[0]
         settings = dict(pairs=pair_list, study_pair=study, preset=preset, seed=seed,
-                        lora_in_turn=lora_in_turn, lora_labels=lora_labels)
+                        lora_labels=lora_labels)
         plan = (quick_plan(**settings) if quick else
                 PaperPlan(**settings, train_baselines=baselines))
     except ValueError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
+        fail(e)
     enable_persistent_cache()
     folder = out or (Path("runs") / "paper-quick" if quick else Path("report"))
     summary = run_paper(plan, folder, log=typer.echo)

@@ -6,10 +6,10 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app
+from safecdt_jax.cli.app import analyze, fail
 
 
-@app.command()
+@analyze.command()
 def certify(
     results: Annotated[Path, typer.Argument(help="A deployment results.json (deploy or run).")],
     budget: Annotated[float, typer.Option(help="Budget B to certify (cost units).")] = 30.0,
@@ -24,14 +24,13 @@ def certify(
 ) -> None:
     """Per CTG condition: phi, sigma, the empirical violation rate beside the bounds of
     Theorems 4.1-4.2; the critical and certified budgets (Theorem 4.3); the transfer check."""
-    from safecdt_jax.data.dataset import write_text_atomic
+    from safecdt_jax.io import write_text_atomic
     from safecdt_jax.theory import certificate_table, certify_file
 
     try:
         cert = certify_file(results, budget, alpha, kappa, source)
     except (ValueError, OSError, KeyError) as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
+        fail(e)
     typer.echo(certificate_table(cert))
     if out is not None:
         write_text_atomic(out, json.dumps(cert, indent=1))

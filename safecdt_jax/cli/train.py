@@ -5,7 +5,7 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app
+from safecdt_jax.cli.app import analyze, app, fail
 
 
 @app.command()
@@ -19,88 +19,45 @@ def pretrain(
         help="Checkpoint folder (default: $SAFECDT_CACHE/checkpoints/TASK-PRESET).")] = None,
     batch: Annotated[int | None, typer.Option(
         min=1, help="Windows per update (default: the preset's).")] = None,
-    micro_batch: Annotated[int | None, typer.Option(
-        min=0, help="Windows per forward/backward pass; the update sums the passes' gradients "
-                    "(0 = the whole batch; default: 16 for the osrl and paper presets on a CPU, "
-                    "where cache-sized passes run a batch of 2048 twice as fast, else 0).")
-    ] = None,
     seed: Annotated[int, typer.Option(
         min=0, help="PRNG seed (init, relabelling, every batch).")] = 0,
-    chunk: Annotated[int | None, typer.Option(
-        min=1, help="Updates per jitted call (default: 100).")] = None,
     task: Annotated[str | None, typer.Option(
         help="Task name (default: the file's task attribute).")] = None,
     resume: Annotated[bool, typer.Option(
         help="Continue the checkpoint in --out up to --steps.")] = False,
     overwrite: Annotated[bool, typer.Option(
         help="Delete checkpoints already in --out first.")] = False,
-    scale_actions: Annotated[bool | None, typer.Option(
-        help="Train on actions divided by the data's largest |action| (folded into the saved "
-             "weights, which emit raw actions either way; default: the preset's, cpu on).")
-    ] = None,
-    standardize_obs: Annotated[bool | None, typer.Option(
-        help="Train on observations standardised by the data's mean and std (folded into "
-             "the saved weights; default: the preset's, cpu on).")] = None,
-    relabel_percent: Annotated[float | None, typer.Option(
-        min=0.0, help="Pareto-relabelled copies per episode (default: the preset's; cpu 1.0, "
-                      "OSRL 0.2).")] = None,
-    cost_scale: Annotated[float | None, typer.Option(
-        help="Cost-to-go tokens are raw CTG times this (default: the preset's; cpu 0.1, "
-             "OSRL 1).")] = None,
-    cost_offset: Annotated[float | None, typer.Option(
-        help="The model reads cost_offset - scaled CTG (default: the preset's; cpu 5, "
-             "OSRL 50).")] = None,
-    token_bins: Annotated[int | None, typer.Option(
-        min=0, help="Encode the RTG and CTG tokens as this many piecewise-linear ramps, edges "
-                    "fitted to the data (default: the preset's; 0 = linear, as OSRL).")] = None,
-    token_rates: Annotated[bool | None, typer.Option(
-        help="Feed RTG and CTG per step left, in whole-episode units (T / (T - t) times "
-             "each).")] = None,
-    constant_targets: Annotated[bool | None, typer.Option(
-        help="Tokens hold each episode's t=0 return and cost at every step, and rollouts "
-             "keep their targets (not decremented); best with --labels policy (default: the "
-             "preset's, cpu on).")] = None,
-    stochastic_actions: Annotated[bool | None, typer.Option(
-        help="Act with samples of the policy's Gaussian instead of its mean in evaluation "
-             "and deployment (default: off).")] = None,
-    labels: Annotated[str | None, typer.Option(
-        help="What the tokens count from: episode (its realised return and cost) or policy "
-             "(the mean of the episodes of its behaviour policy, episode_info/snapshot), or "
-             "auto (policy where the data have snapshots; default: the preset's, cpu auto, "
-             "OSRL episode).")
-    ] = None,
+    settings: Annotated[list[str] | None, typer.Option(
+        "--set", metavar="FIELD=VALUE",
+        help="Set any PretrainConfig or CDTConfig field (repeatable), e.g. --set "
+             "micro_batch=16, --set token_bins=0, --set labels=episode; docs/CLI.md lists "
+             "them.")] = None,
 ) -> None:
     """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs.
 
-    `--cost-scale` and `--cost-offset` set the cost-to-go token; evaluate and deploy read both
-    back from the checkpoint. The token passes a LayerNorm that keeps only its direction once
-    the scaled input outweighs the bias, so it should span about [-1, 1] over the cost-to-go
-    range that matters (docs/CDT_FINDINGS.md, section 1): e.g. 0.025 and 1 for 0-80.
-    `--token-bins` avoids that limit (ramps keep each value's own direction), `--token-rates`
-    and `--labels policy` make the tokens name the policy rather than the layout's luck
-    (section 12); `--constant-targets --labels policy` keeps that name all episode (section 14).
+    The preset fixes every setting; `--set` changes any field of the run's `PretrainConfig`
+    (labels, relabelling, normalisation, micro-batches, token spans) or of the model's
+    `CDTConfig` (size, token encoding, dropout); the checkpoint records them all, and evaluate
+    and deploy read the token encoding back from it (docs/METHOD.md section 0).
     """
-    from safecdt_jax import pretrain as pt
+    import dataclasses
 
-    overrides = {"seed": seed}
-    for name, value in (("steps", steps), ("batch_size", batch), ("chunk", chunk),
-                        ("micro_batch", micro_batch),
-                        ("scale_actions", scale_actions), ("standardize_obs", standardize_obs),
-                        ("labels", labels), ("relabel_percent", relabel_percent)):
-        if value is not None:
-            overrides[name] = value
-    model = {name: value for name, value in (
-        ("cost_scale", cost_scale), ("cost_offset", cost_offset), ("token_bins", token_bins),
-        ("token_rates", token_rates), ("constant_targets", constant_targets),
-        ("stochastic_actions", stochastic_actions))
-        if value is not None}
+    from safecdt_jax import pretrain as pt
+    from safecdt_jax.model.config import CDTConfig
+    from safecdt_jax.validate import field_overrides
+
     try:
+        fields = field_overrides(settings or [], pt.PretrainConfig, CDTConfig)
+        run_fields = {f.name for f in dataclasses.fields(pt.PretrainConfig)}
+        overrides = {k: v for k, v in fields.items() if k in run_fields}
+        model = {k: v for k, v in fields.items() if k not in run_fields}
+        given = {"seed": seed, "steps": steps, "batch_size": batch}
+        overrides.update({k: v for k, v in given.items() if v is not None})
         cfg = pt.default_pretrain(preset, **overrides)
         result = pt.pretrain(data, out, preset=preset, config=cfg, task=task, resume=resume,
                              overwrite=overwrite, model_overrides=model)
     except ValueError as e:  # CheckpointError, DatasetError and bad settings: one clean line
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
+        fail(e)
     meta, hist = result.meta, result.history
     loss, ll = hist.metrics["loss"], hist.metrics["log_likelihood"]
     # One chunk's mean swings by +-1 nat on heavy-tailed data: end on the mean of the last 10.
@@ -116,7 +73,7 @@ def pretrain(
     typer.echo(f"checkpoint: {result.path}")
 
 
-@app.command()
+@analyze.command()
 def diagnose(
     ckpt: Annotated[Path, typer.Option(exists=True, file_okay=False,
                                        help="Checkpoint folder.")],
@@ -132,8 +89,7 @@ def diagnose(
     try:
         gaps = conditioning_gaps(ckpt, data, windows, seed)
     except ValueError as e:
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
+        fail(e)
     typer.echo(f"action log-likelihood {gaps['log_likelihood']:.4f} nats/dim on {windows} "
                f"training windows ({100 * gaps['share_ctg_positive']:.0f}% with CTG > 0)")
     typer.echo("| token shuffled | log-likelihood drop (nats/dim) |\n|---|---|")
@@ -141,7 +97,7 @@ def diagnose(
         typer.echo(f"| {name} | {gaps[name]:.5f} |")
 
 
-@app.command()
+@analyze.command()
 def bc(
     data: Annotated[Path, typer.Option(exists=True, dir_okay=False,
                                        help="DSRL-format HDF5 file.")],
@@ -163,7 +119,7 @@ def bc(
     import numpy as np
 
     from safecdt_jax import envs
-    from safecdt_jax.analysis.bc import BCConfig, cloned_episodes, cost_band, evaluate_bc, fit_bc
+    from safecdt_jax.baselines.bc import BCConfig, cloned_episodes, cost_band, evaluate_bc, fit_bc
     from safecdt_jax.data.dsrl import load_dataset
     from safecdt_jax.data.windows import episode_costs, episode_returns
 
@@ -184,8 +140,7 @@ def bc(
         policy, loss = fit_bc(key, ds, cfg)
         returns, costs = evaluate_bc(jax.random.fold_in(key, 1), task, policy, episodes)
     except ValueError as e:  # DatasetError, an unknown task, no qualifying episode: one line
-        typer.echo(f"error: {e}", err=True)
-        raise typer.Exit(1) from e
+        fail(e)
     band = cost_band(max_cost, min_cost)
     label = ("BC-All" if band == "any" else
              f"BC-Safe (cost {band})" if min_cost is None else f"BC (cost {band})")

@@ -1,19 +1,16 @@
-"""Collect a source data set: behaviour-policy episodes, one jitted, vmapped program per chunk.
+"""Collection plumbing shared by the source-data collectors: run a jitted, vmapped whole-episode
+program over many episodes chunk by chunk, turn the arrays into a `Dataset`, write it as
+DSRL-format HDF5, and the checks around that (a writable path, a file's attributes, coverage).
 
-    data = collect(jax.random.PRNGKey(0), "CarGoal1", episodes=1000)   # a `Dataset`
-    write_collected(path, data)                                        # DSRL-format HDF5
-    path = ensure_dataset("CarGoal1", 1000, seed=0)   # the cached file, or collected and written
-
-Every episode runs the task's full time limit (there are no terminations), so episodes are equally
-long and the data are plain `[n, T, ...]` arrays. Per-episode keys and knobs are drawn from the
-one key up front, so the data do not depend on the chunk size, which only sets the progress bar's
-step and the memory one compiled call holds.
+The collector itself is `experts.collect` (the committed PPO-Lagrangian snapshots rolled out and
+grid-filtered to DSRL's size). Every episode runs its whole horizon (the tasks have no
+terminations), so the data are plain `[n, T, ...]` arrays; the chunk size sets only the
+progress step and the memory one compiled call holds, never the data.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
 import tempfile
 from collections.abc import Callable
@@ -21,43 +18,14 @@ from pathlib import Path
 
 import h5py
 import jax
-import jax.numpy as jnp
 import numpy as np
 
-from safecdt_jax import envs, paths
-from safecdt_jax.data.behaviour import Knobs, family, make_policy, sample_knobs
+from safecdt_jax import envs
 from safecdt_jax.data.dataset import Attrs, Dataset
 from safecdt_jax.data.dsrl import write_dataset
 
-# Bump whenever the behaviour policies, their knob ranges or the collection loop change: cached
-# data sets written by another version are collected again.
-COLLECTOR_VERSION = 5  # 5: the Point runs the graded Circle family (Car and Goal data as in 4)
-DEFAULT_EPISODES = 1000  # as DSRL's data sets (>= 1000 episodes per task)
+MIN_EPISODES = 1000  # the episode count of DSRL's source data sets, a coverage check
 DEFAULT_CHUNK = 100  # episodes per compiled call: ~29 MB of CarGoal observations
-
-
-@functools.cache
-def _rollout_fn(task: str, horizon: int) -> Callable:
-    """jit(vmap(episode)): (keys [c], knobs {name: [c]}) -> (obs [c, T, d], final obs [c, d],
-    actions [c, T, 2], rewards [c, T], costs [c, T]) with T = `horizon`. Cached: compiled once."""
-    env, params = envs.make(task)
-    policy = make_policy(task, params)
-
-    def episode(key: jax.Array, knobs: Knobs):
-        k_reset, k_steps = jax.random.split(key)
-
-        def step(carry, k):
-            state, spent = carry  # spent: the episode's cost so far, which budgets act on
-            action = policy(knobs, state, spent, k)
-            nxt = env.step(state, action, params)
-            return (nxt, spent + nxt.cost), (state.obs, action, nxt.reward, nxt.cost)
-
-        init = (env.reset(k_reset, params), jnp.float32(0.0))
-        (final, _), (obs, actions, rewards, costs) = jax.lax.scan(
-            step, init, jax.random.split(k_steps, horizon))
-        return obs, final.obs, actions, rewards, costs
-
-    return jax.jit(jax.vmap(episode))
 
 
 def env_params_attrs(task: str) -> dict:
@@ -65,48 +33,6 @@ def env_params_attrs(task: str) -> dict:
     params = envs.make(task)[1]
     return {f.name: np.asarray(getattr(params, f.name)).tolist()
             for f in dataclasses.fields(params)}
-
-
-def collect(key: jax.Array, task: str, episodes: int, chunk: int = DEFAULT_CHUNK,
-            progress: Callable[[int], None] | None = None, seed: int | None = None,
-            horizon: int | None = None) -> Dataset:
-    """Runs `episodes` behaviour episodes of `task` and returns them as a `Dataset` (numpy).
-
-    Arrays: observations and next_observations [n, T, obs_dim], actions [n, T, 2], rewards and
-    costs [n, T] (raw per-step values), lengths [n] = T, every episode ending in a timeout.
-    T is `horizon`, by default the task's time limit (1000 Goal, 500 Circle; shorter horizons
-    are for tests and smoke runs). `episode_info` holds each episode's knobs (float32 [n] per knob);
-    `attrs` the task, its env params, the collector version, the behaviour family and its
-    ranges, the episode count and `seed` (if given). Episodes run `chunk` at a time (the last
-    chunk padded, so one compiled program serves all); `progress(k)` is called after each chunk
-    with the number of episodes it finished. Raises ValueError for an unknown task or
-    episodes < 1.
-    """
-    fam = family(task)  # validates the name
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    env, _ = envs.make(task)
-    t = env.episode_length if horizon is None else int(horizon)
-    if t < 1:
-        raise ValueError(f"horizon must be >= 1, got {t}")
-    k_knobs, k_eps = jax.random.split(key)
-    knobs = sample_knobs(k_knobs, task, episodes)
-    arrays = run_episodes(_rollout_fn(task, t), jax.random.split(k_eps, episodes), knobs,
-                          env.observation_size, env.action_size, chunk, progress)
-    attrs = {
-        "task": task,
-        "env_params": env_params_attrs(task),
-        "collector_version": COLLECTOR_VERSION,
-        "physics_version": envs.physics_version(task),
-        "behaviour": type(fam).__name__,
-        "behaviour_family": dataclasses.asdict(fam),
-        "episodes": episodes,
-        "horizon": t,
-    }
-    if seed is not None:
-        attrs["seed"] = int(seed)
-    return full_length_dataset(arrays, {k: np.asarray(v, np.float32) for k, v in knobs.items()},
-                               attrs)
 
 
 def run_episodes(rollout: Callable, keys: jax.Array, inputs, obs_dim: int, act_dim: int,
@@ -184,40 +110,7 @@ def file_attrs(path: str | os.PathLike) -> dict | None:
         return None
 
 
-def is_current(path: str | os.PathLike, task: str, episodes: int, seed: int) -> bool:
-    """Whether `path` holds `task` data from this collector and physics version and `seed`, with
-    at least `episodes` full-length episodes."""
-    attrs = file_attrs(path)
-    if attrs is None:
-        return False
-    return (attrs.get("task") == task and attrs.get("collector_version") == COLLECTOR_VERSION
-            and attrs.get("physics_version") == envs.physics_version(task)
-            and attrs.get("seed") == seed and int(attrs.get("episodes", 0)) >= episodes
-            and attrs.get("horizon") == envs.make(task)[0].episode_length)
-
-
-def ensure_dataset(task: str, episodes: int = DEFAULT_EPISODES, seed: int = 0,
-                   path: str | os.PathLike | None = None,
-                   progress: Callable[[int], None] | None = None) -> Path:
-    """The path of a current data set for `task` (default `paths.dataset_path(task)`).
-
-    Returns the file as is when `is_current` (same task, collector version and seed, at least
-    `episodes` full-length episodes); otherwise collects `episodes` episodes with
-    `PRNGKey(seed)` and writes them there, replacing what was there. Raises ValueError for an
-    unknown task, episodes < 1 or an unwritable path.
-    """
-    family(task)  # validates the name before touching the disk
-    if episodes < 1:
-        raise ValueError(f"episodes must be >= 1, got {episodes}")
-    path = Path(paths.dataset_path(task) if path is None else path).expanduser()
-    if is_current(path, task, episodes, seed):
-        return path
-    path = check_writable(path)
-    data = collect(jax.random.PRNGKey(seed), task, episodes, progress=progress, seed=seed)
-    return write_collected(path, data)
-
-
-def coverage_checks(summary: dict, min_episodes: int = DEFAULT_EPISODES) -> dict[str, bool]:
+def coverage_checks(summary: dict, min_episodes: int = MIN_EPISODES) -> dict[str, bool]:
     """Whether a `summarize_dataset` summary (default thresholds) has the coverage a source data
     set needs: at least `min_episodes` episodes; costs from 0 to at least 100; at least 20% of
     episodes at cost <= 30 and 20% above; and a rising frontier, the best return at cost 30-100
@@ -232,16 +125,13 @@ def coverage_checks(summary: dict, min_episodes: int = DEFAULT_EPISODES) -> dict
 
 
 __all__ = [
-    "COLLECTOR_VERSION",
-    "DEFAULT_EPISODES",
+    "DEFAULT_CHUNK",
+    "MIN_EPISODES",
     "check_writable",
-    "collect",
     "coverage_checks",
-    "ensure_dataset",
     "env_params_attrs",
     "file_attrs",
     "full_length_dataset",
-    "is_current",
     "run_episodes",
     "write_collected",
 ]

@@ -18,12 +18,12 @@ from safecdt_jax.data.dataset import (
     Attrs,
     Dataset,
     DatasetError,
-    atomic_path,
     encode_attr,
     episode_bounds,
     pad_flat,
     to_flat,
 )
+from safecdt_jax.io import atomic_path
 
 KEYS = (
     "observations",

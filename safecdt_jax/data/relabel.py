@@ -176,8 +176,8 @@ def policy_mean_labels(data: Dataset, key: str = "snapshot") -> Dataset:
     """Each episode's return- and cost-to-go shifted so that at t=0 they equal the mean episode
     return and cost of the policy that drove it (the episodes sharing `episode_info[key]`).
 
-    An expert's episode cost on a Goal task is mostly the layout's luck (docs/CDT_FINDINGS.md,
-    sections 10 and 12): a label of 10 is as often a fast policy's lucky layout as a careful
+    An expert's episode cost on a Goal task is mostly the layout's luck (docs/METHOD.md,
+    section 8): a label of 10 is as often a fast policy's lucky layout as a careful
     policy's normal one, so a model conditioned on realised outcomes cannot learn caution from
     it. Labelled by its policy's expectation (as ESPER does with learnt clusters; here the
     policies are known), the token names how the episode was driven. Within an episode the

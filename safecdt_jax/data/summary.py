@@ -7,9 +7,10 @@ from typing import Any
 
 import numpy as np
 
-from safecdt_jax.data.dataset import Dataset, atomic_path
+from safecdt_jax.data.dataset import Dataset
 from safecdt_jax.data.dsrl import load_dataset
 from safecdt_jax.data.windows import episode_costs, episode_returns
+from safecdt_jax.io import atomic_path
 
 
 def _num(x) -> float | None:

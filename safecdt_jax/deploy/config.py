@@ -87,7 +87,7 @@ class DeployConfig:
             1 thread) faster, the whole sweep 1.19x and 1.46x (docs/PERFORMANCE.md). The
             adapters agree to float rounding (summation order), but a rollout that follows
             them can leave the other's path: results made before 2026-12-05 ran batched, and
-            `lora_in_turn=False` (`--no-lora-in-turn`) reproduces them bit for bit.
+            `lora_in_turn=False` (`--set lora_in_turn=false`) reproduces them bit for bit.
         lora_micro_batch: compute each LoRA step's gradient in passes of at most this many of
             its `lora_batch` windows, summed (0, the default: one pass, as every published
             result ran). The same gradient up to float summation order; on a CPU small passes

@@ -20,22 +20,7 @@ from typing import Any
 import jax
 import numpy as np
 
-# Source -> target task of each deployment pair of the paper (and PointGoal, ours).
-PAIRS: dict[str, tuple[str, str]] = {
-    "CG1-CG2": ("CarGoal1", "CarGoal2"),
-    "CC1-CC2": ("CarCircle1", "CarCircle2"),
-    "PC1-PC2": ("PointCircle1", "PointCircle2"),
-    "PG1-PG2": ("PointGoal1", "PointGoal2"),
-}
-
 RESULTS_FORMAT = 1
-
-
-def parse_pair(pair: str) -> tuple[str, str]:
-    """(source task, target task) of a pair name such as `CG1-CG2`; ValueError lists the valid."""
-    if pair not in PAIRS:
-        raise ValueError(f"unknown pair {pair!r}; valid pairs: {', '.join(PAIRS)}")
-    return PAIRS[pair]
 
 
 def parse_list(text: str, kind: Callable[[str], Any], what: str) -> list:
@@ -115,10 +100,10 @@ def run_deployment(
     from safecdt_jax.deploy.loop import make_spec, seed_keys
     from safecdt_jax.deploy.sweep import stack_specs, sweep
     from safecdt_jax.envs.dynamics import apply_dynamics, params_record, stack_params
-    from safecdt_jax.pretrain.run import versions
     from safecdt_jax.pretrain.support import checkpoint_support, requested_targets, support_note
     from safecdt_jax.progress import Bar
-    from safecdt_jax.report.tables import summarize_runs
+    from safecdt_jax.results.tables import summarize_runs
+    from safecdt_jax.versions import versions
 
     if seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {seeds}")
@@ -196,11 +181,13 @@ def shift_axes(runs: Sequence[dict[str, Any]]) -> dict[str, list[float]]:
 
 
 def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: str) -> list[Path]:
-    """Write `results.json`, `table.md` and the figures into `out_dir` (each atomically)."""
-    from safecdt_jax.data.dataset import write_text_atomic
+    """Write `results.json`, `table.md` and the figures into `out_dir` (each atomically), and
+    each run's per-episode curves as TensorBoard events in `out_dir/tensorboard`."""
     from safecdt_jax.envs.dynamics import shift_label
-    from safecdt_jax.report.figures import plot_deployment, plot_robustness
-    from safecdt_jax.report.tables import results_table
+    from safecdt_jax.io import write_text_atomic
+    from safecdt_jax.results.figures import plot_deployment, plot_robustness
+    from safecdt_jax.results.tables import results_table
+    from safecdt_jax.tensorboard import deployment_curves
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -218,11 +205,14 @@ def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: st
               f"deployment {timing['deploy_s']:.0f} s "
               f"({timing['env_steps_per_s']:,.0f} env steps/s).\n\n")
     written.append(write_text_atomic(out / "table.md", header + results_table(rows)))
+    deployment_curves(out / "tensorboard", {run_label(r, len(budgets), len(shifts)): r["metrics"]
+                                             for r in results["runs"]})
     for budget in budgets:
         runs = {run_label(r, 1, len(shifts)): r["metrics"] for r in results["runs"]
                 if r["budget"] == budget}
         folder = out if len(budgets) == 1 else out / f"budget_{budget:g}"
-        figures = plot_deployment(runs, budget, folder, f"{title}, B={budget:g}")
+        figures = plot_deployment(runs, budget, folder, f"{title}, B={budget:g}",
+                                  results["deploy_config"]["stage_len"])
         written += [Path(p) for p in figures]
     for field, values in shift_axes(results["runs"]).items():
         if len(values) >= 3:  # a robustness curve needs a few points

@@ -154,7 +154,7 @@ class CarRobot(Robot):
     Each ground contact's force grows linearly with its slip and saturates at a fraction of
     mu N (native MuJoCo's soft contacts slide at 0.66-0.88 of the cone's mu N), the model that
     the reference's contact forces, measured contact by contact (`mj_contactForce`,
-    `benchmarks.sim2sim`'s contact table, docs/ENVIRONMENTS.md), support:
+    `experiments.sim2sim`'s contact table, docs/ENVIRONMENTS.md), support:
     - A driven wheel (contact at body (+-0.13, 0.1)) under torque tau would spin freely at the
       rim speed r tau / c_w (its hinge damping c_w balances the torque within milliseconds, the
       wheel's inertia being tiny); its contact pushes the chassis with

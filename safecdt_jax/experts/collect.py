@@ -265,34 +265,18 @@ def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int,
             and grid.get("target") == size.episodes)
 
 
-BEHAVIOURS = ("expert", "scripted")
-
-
-def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | None = None,
-                       seed: int = 0, path: str | os.PathLike | None = None,
+def ensure_source_data(task: str, episodes: int | None = None, seed: int = 0,
+                       path: str | os.PathLike | None = None,
                        progress: Callable[[int], None] | None = None,
                        actions: str = DEFAULT_ACTIONS) -> Path:
     """The path of a current source data set of `task` (default `paths.dataset_path(task,
-    actions)`), collected there first unless the file is current.
-
-    behaviour 'expert' (default): the task's committed expert snapshots, grid-filtered to
-    DSRL's size (`episodes` overrides its count), actions recorded as `actions` says
-    (`ACTION_RECORDINGS`); 'scripted': the scripted drivers of
-    `safecdt_jax.data.behaviour` (`episodes` of them, default 1000). ValueError for an unknown
-    behaviour or task, or a task without snapshots.
-    """
+    actions)`), collected there first unless the file is current: the task's committed expert
+    snapshots rolled out with `PRNGKey(seed)` and grid-filtered to DSRL's size (`episodes`
+    overrides its count), actions recorded as `actions` says (`ACTION_RECORDINGS`). ValueError
+    for an unknown task, a task without snapshots or an unwritable path."""
     from safecdt_jax import paths
-    from safecdt_jax.data.collect import (
-        DEFAULT_EPISODES,
-        check_writable,
-        ensure_dataset,
-        write_collected,
-    )
+    from safecdt_jax.data.collect import check_writable, write_collected
 
-    if behaviour not in BEHAVIOURS:
-        raise ValueError(f"unknown behaviour {behaviour!r}; choose one of {', '.join(BEHAVIOURS)}")
-    if behaviour == "scripted":
-        return ensure_dataset(task, episodes or DEFAULT_EPISODES, seed, path, progress)
     snapshot_path(task)  # validates the task before touching the disk
     _check_actions(actions)
     size = target_size(task, episodes)
@@ -307,7 +291,6 @@ def ensure_source_data(task: str, behaviour: str = "expert", episodes: int | Non
 
 __all__ = [
     "ACTION_RECORDINGS",
-    "BEHAVIOURS",
     "DSRL_SIZES",
     "EXPERT_COLLECTOR_VERSION",
     "SNAPSHOT_DIR",

@@ -12,10 +12,10 @@ import jax
 import numpy as np
 
 from safecdt_jax import envs
-from safecdt_jax.data.dataset import atomic_path, write_text_atomic
 from safecdt_jax.experts.config import ExpertConfig
 from safecdt_jax.experts.networks import ObsNorm
 from safecdt_jax.experts.run import ExpertRun
+from safecdt_jax.io import atomic_path, write_text_atomic
 
 SNAPSHOT_FORMAT = 1
 
@@ -31,6 +31,20 @@ def write_curves(path: str | os.PathLike, run: ExpertRun) -> Path:
                        for i, (label, s, seed) in enumerate(zip(run.labels, run.schedules,
                                                                 run.seeds, strict=True))]}
     return write_text_atomic(path, json.dumps(record, indent=1))
+
+
+def write_tensorboard(folder: str | os.PathLike, run: ExpertRun) -> Path:
+    """The learning curves as TensorBoard events, one folder per run (`folder/<label>`), each
+    curve tagged `expert/<name>` against env steps. Returns `folder`."""
+    from safecdt_jax.tensorboard import write_scalars
+
+    rounds = run.curves["return"].shape[1]
+    steps = [run.cfg.num_envs * run.cfg.horizon * (i + 1) for i in range(rounds)]
+    for i, label in enumerate(run.labels):
+        safe = "".join(c if c.isalnum() or c in "._=-" else "_" for c in label)
+        write_scalars(Path(folder) / safe, {f"expert/{k}": v[i] for k, v in run.curves.items()},
+                      steps)
+    return Path(folder)
 
 
 def plot_curves(path: str | os.PathLike, run: ExpertRun) -> Path:

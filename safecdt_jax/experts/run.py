@@ -22,9 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from safecdt_jax.data.dataset import atomic_path
 from safecdt_jax.experts.config import CostSchedule, ExpertConfig
 from safecdt_jax.experts.ppo_lag import make_train
+from safecdt_jax.io import atomic_path
 
 CURVES = ("return", "cost", "cost_limit", "lambda", "std")
 

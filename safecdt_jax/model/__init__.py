@@ -24,7 +24,6 @@ from safecdt_jax.model.loss import (
     gaussian_entropy,
     gaussian_log_prob,
     loss_normalisers,
-    temperature_loss,
 )
 from safecdt_jax.model.optim import (
     OptimConfig,
@@ -76,7 +75,6 @@ __all__ = [
     "newest_action",
     "param_shapes",
     "piecewise_linear",
-    "temperature_loss",
     "with_nominal_edges",
     "with_token_edges",
 ]

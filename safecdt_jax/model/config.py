@@ -13,36 +13,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from safecdt_jax import validate as check
+from safecdt_jax.presets import MODEL
 
-# Sizes of the named presets: (embed_dim, num_layers, num_heads, seq_len, lora_rank, lora_alpha).
-_PRESETS: dict[str, dict[str, Any]] = {
-    # Smallest model that still exercises every code path (multi-head, padding, LoRA); for tests.
-    "tiny": dict(embed_dim=16, num_layers=1, num_heads=2, seq_len=4, lora_rank=4, lora_alpha=8.0),
-    # Default demo model (176,974 parameters for CarGoal, 140,846 for CarCircle, ramps included;
-    # 175,054 and 138,926 with linear tokens): its default
-    # pretraining, 10,000 updates at batch 32 (pretrain.default_pretrain), takes 2.5-5 minutes on
-    # a 2-core CPU at 14-24 ms per update; one batch-15 inference step takes ~1.5 ms.
-    # Its cost token reads `5 - 0.1 CTG`, OSRL's `50 - CTG` divided by 10. The embedding
-    # LayerNorm normalises each token on its own: an input of size ~50 times a N(0, 0.02) weight
-    # swamps the bias and the timestep embedding, and the normalised token keeps little more
-    # than the sign of `50 - CTG`. OSRL's 100,000 updates of 2048 windows learn their way around
-    # this; 10,000 of 32 did not. On CarCircle1 (scripted collector v4, cost targets 10/20/40/80
-    # at the reference return, 20 episodes each) the cost rose with the target and stayed below
-    # the data median at target 20 for 3 of 4 pretraining seeds at 0.1, 1 of 3 at scale 1.
-    # Since 2026-12-04 its return and cost tokens are 16 ramps each (edges fitted in
-    # pretraining) held constant over an episode: with the pretraining defaults of
-    # `pretrain.default_pretrain("cpu")` and the experts' sampled actions, the options under which
-    # its cost follows the cost target on CarGoal1 and CarCircle1 (PointCircle1: 2 of 4 seeds;
-    # docs/CDT_FINDINGS.md section 17).
-    "cpu": dict(embed_dim=64, num_layers=2, num_heads=4, seq_len=10, cost_scale=0.1,
-                cost_offset=5.0, token_bins=16, constant_targets=True),
-    # OSRL's default CDT: 744,910 parameters for CarGoal (obs 72, act 2, episode 1000).
-    "osrl": dict(embed_dim=128, num_layers=3, num_heads=8, seq_len=10),
-    # The Safe-CDT paper's model: about 3.5M parameters, LoRA rank 16 on q/v -> 65,536 adapters.
-    "paper": dict(embed_dim=256, num_layers=4, num_heads=8, seq_len=10),
-}
-
-PRESET_NAMES: tuple[str, ...] = tuple(_PRESETS)
+PRESET_NAMES: tuple[str, ...] = tuple(MODEL)
 
 
 @dataclass(frozen=True)
@@ -85,13 +58,13 @@ class CDTConfig:
             `safecdt_jax.model.tokens`). Why: the embedding LayerNorm divides each token by its
             own scale, so a linear embedding `w * x` of a positive scalar keeps only its sign
             once `|w * x|` outgrows the bias and the timestep embedding; the ramps turn a
-            value into a direction, which the LayerNorm keeps (docs/CDT_FINDINGS.md section 12).
+            value into a direction, which the LayerNorm keeps (docs/METHOD.md section 8).
         token_rates: multiply the return-to-go and cost-to-go inputs by `T / (T - t)` (T the
             horizon `episode_len`, t the step): the tokens then read the return and cost per
             step still to come, in whole-episode units. A plain return-to-go of 10 is a careful
             policy's whole episode and a fast one's last quarter; as a rate each policy keeps
             its own value at every step, so the token names the behaviour without the
-            timestep embedding's help (docs/CDT_FINDINGS.md section 12).
+            timestep embedding's help (docs/METHOD.md section 8).
         constant_targets: False (OSRL): the return and cost tokens are the return- and
             cost-to-go, falling by the realised rewards and costs within an episode, in training
             windows and in rollouts alike. True: every step's tokens hold the episode's t=0 labels
@@ -100,7 +73,7 @@ class CDTConfig:
             episode is driven rather than what is left of it. Why: a conditional clone of
             CarGoal1 expert data follows a constant policy-mean cost label and loses the
             response once the label is decremented; the `cpu` CDT did not follow with it
-            alone (docs/CDT_FINDINGS.md sections 13-14). A documented deviation from OSRL;
+            alone (docs/METHOD.md section 8). A documented deviation from OSRL;
             not with `token_rates`.
         stochastic_actions: False (OSRL): rollouts act with the Gaussian head's mean, clipped to
             the action box. True: with a sample `mean + exp(log_std) * N(0, 1)` of it, clipped,
@@ -108,7 +81,7 @@ class CDTConfig:
             comes from the experts' exploration noise (the Car, whose wheel torques saturate at
             +-0.02 so nearly every sampled action is a sign coin), a clone that acts with its
             mean drives otherwise than the episodes whose labels it was given
-            (docs/CDT_FINDINGS.md sections 16-17). Pretraining is unchanged.
+            (docs/METHOD.md section 8). Pretraining is unchanged.
         return_edges: increasing bin edges of the ramps for the return-to-go input (scaled units,
             RTG * reward_scale); empty until fitted. Values outside them saturate.
         cost_edges: the same for the cost-to-go input (CTG * cost_scale, before any transform:
@@ -215,7 +188,7 @@ class CDTConfig:
         `overrides` replace any field of the preset (e.g. `seq_len=20`). Raises ValueError for an
         unknown name or an invalid value.
         """
-        if name not in _PRESETS:
-            raise ValueError(f"unknown CDT preset {name!r}; choose one of {', '.join(_PRESETS)}")
-        fields = {**_PRESETS[name], **overrides}
+        if name not in MODEL:
+            raise ValueError(f"unknown CDT preset {name!r}; choose one of {', '.join(MODEL)}")
+        fields = {**MODEL[name], **overrides}
         return cls(obs_dim=obs_dim, act_dim=act_dim, episode_len=episode_len, **fields)

@@ -51,12 +51,10 @@ class PaperPlan:
         alpha, kappa: the certificate's tolerated probability of any violation and B*'s
             confidence coefficient (docs/METHOD.md section 7).
         seed: base PRNG seed of every experiment.
-        lora_in_turn: `DeployConfig.lora_in_turn` of every deployment (None: on for one CPU
-            device). An experiment with LoRA steps run in turn records it in its spec; the
-            records made before 2026-12-05 ran batched (False) and still match that.
         lora_labels: `DeployConfig.lora_labels` of every deployment with LoRA steps
-            ("stage"); an experiment with LoRA records it in its spec unless it is the paper's
-            "hindsight", the rule of every record made before the key existed.
+            ("stage"; "hindsight" is the paper's rule). Each LoRA experiment records it in its
+            spec, beside how its seeds' LoRA gradients ran (`DeployConfig.lora_in_turn` as the
+            devices resolve it: in turn on one CPU device, batched elsewhere).
     """
 
     pairs: tuple[str, ...] = ("CG1-CG2", "CC1-CC2", "PC1-PC2")
@@ -84,11 +82,10 @@ class PaperPlan:
     alpha: float = 0.05
     kappa: float = 1.0
     seed: int = 0
-    lora_in_turn: bool | None = None
     lora_labels: str = "stage"
 
     def __post_init__(self) -> None:
-        from safecdt_jax.deploy.job import PAIRS
+        from safecdt_jax.pairs import PAIRS
 
         check.integers(self, "main_seeds", "other_seeds", "study_seeds", "ctg_seeds",
                        "episodes", "intervention_episodes", "source_seeds", "baseline_seeds",
@@ -97,7 +94,6 @@ class PaperPlan:
         check.integers(self, "seed", minimum=0)
         check.positive(self, "budget", "kappa")
         check.booleans(self, "train_baselines")
-        check.booleans(self, "lora_in_turn", optional=True)
         from safecdt_jax.deploy.labels import LABEL_RULES
 
         if self.lora_labels not in LABEL_RULES:

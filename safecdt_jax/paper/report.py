@@ -129,7 +129,7 @@ def claims(data: Mapping[str, dict], plan: PaperPlan) -> list[dict[str, Any]]:
 
 def claims_table(rows: list[dict[str, Any]]) -> str:
     """The claims as markdown, with yes / no / not run."""
-    from safecdt_jax.report.tables import markdown_table
+    from safecdt_jax.results.tables import markdown_table
 
     verdict = {True: "yes", False: "**no**", None: "not run"}
     return markdown_table(["section", "claim", "paper", "ours", "supported"],
@@ -146,7 +146,7 @@ def plot_figure2(data: Mapping[str, dict], plan: PaperPlan, path: str | os.PathL
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from safecdt_jax.report.figures import save_png
+    from safecdt_jax.results.figures import save_png
 
     fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
     for pair, d in data["t5"].items():
@@ -181,7 +181,7 @@ def plot_figure2(data: Mapping[str, dict], plan: PaperPlan, path: str | os.PathL
 def _figures(records: T.Records, data: dict, plan: PaperPlan, out: Path) -> list[str]:
     """Figure 2, each pair's Safe-CDT traces and reward-cost scatter; returns markdown lines."""
     from safecdt_jax.baselines.job import plot_scatter
-    from safecdt_jax.report.figures import plot_deployment
+    from safecdt_jax.results.figures import plot_deployment
 
     fig_dir = out / "figures"
     fig_dir.mkdir(parents=True, exist_ok=True)
@@ -195,7 +195,8 @@ def _figures(records: T.Records, data: dict, plan: PaperPlan, out: Path) -> list
             continue
         run = T.find_run(main, "safe_cdt")
         plot_deployment({"safe_cdt": run["metrics"]}, plan.budget, fig_dir / pair,
-                        f"Safe-CDT {pair}, B={plan.budget:g}")
+                        f"Safe-CDT {pair}, B={plan.budget:g}",
+                        main["results"]["deploy_config"]["stage_len"])
         methods = [{"algo": "safe_cdt", "returns": run["metrics"]["return"],
                     "costs": run["metrics"]["cost"]}]
         studies = records.get(f"{pair}_studies")
@@ -263,8 +264,8 @@ def build_tables(records: T.Records, plan: PaperPlan) -> tuple[dict[str, str], d
 
 def write_report(out: str | os.PathLike, plan: PaperPlan, summary: Mapping[str, Any]) -> Path:
     """Writes `out/REPORT.md` and `out/figures/` from `run_paper`'s summary; returns the path."""
-    from safecdt_jax.data.dataset import write_text_atomic
-    from safecdt_jax.report.tables import markdown_table
+    from safecdt_jax.io import write_text_atomic
+    from safecdt_jax.results.tables import markdown_table
 
     out = Path(out)
     records = summary["records"]

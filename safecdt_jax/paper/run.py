@@ -26,8 +26,8 @@ RECORD_FORMAT = 1
 def prepare_pair(pair: str, plan: PaperPlan, progress: bool = True) -> Path:
     """The pretrained CDT of `pair`'s source task (plan.preset), as `safecdt-jax run` makes it:
     the cached expert data and checkpoint reused, collected or trained if missing."""
-    from safecdt_jax.deploy.job import parse_pair
     from safecdt_jax.experts.collect import ensure_source_data
+    from safecdt_jax.pairs import parse_pair
     from safecdt_jax.pretrain.run import ensure_checkpoint
 
     source, _ = parse_pair(pair)
@@ -40,7 +40,7 @@ def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
     """What identifies a pretrained checkpoint in an experiment's spec: its task, preset,
     update count and the fingerprint of the data it was trained on (not its folder, so a
     clone whose cache lives elsewhere reuses the committed experiments), and the spans of its
-    token edges where it was trained with them (records made before spans existed have none)."""
+    token edges."""
     from safecdt_jax.pretrain.checkpoint import read_meta
 
     meta = read_meta(ckpt)
@@ -54,7 +54,8 @@ def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
 def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) -> dict[str, Any]:
     """Everything that decides an experiment's result, as JSON-ready data (two runs with equal
     specs give the same result, so a finished one is reused)."""
-    from safecdt_jax.deploy.job import parse_pair
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.pairs import parse_pair
 
     source, target = parse_pair(e.pair)
     spec = {"format": RECORD_FORMAT, "pair": e.pair, "name": e.name, "kind": e.kind,
@@ -63,12 +64,11 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
         spec |= {"task": source if e.task == "source" else target,
                  "runs": [[v, float(b)] for v, b in e.runs], "horizon": plan.horizon,
                  "seed": plan.seed, "stop_over_budget": True, "checkpoint": dict(ckpt_id)}
-        # Only where it changes bits: LoRA steps taken in turn, LoRA labels other than the
-        # paper's hindsight. Runs without LoRA keep the spec of the records made before.
-        lora = _has_lora(e)
-        spec |= {"lora_in_turn": True} if _lora_in_turn(e, plan) else {}
-        return spec | ({"lora_labels": plan.lora_labels}
-                       if lora and plan.lora_labels != "hindsight" else {})
+        # How LoRA ran changes the bits of a LoRA run only: runs without LoRA share records.
+        if _has_lora(e):
+            in_turn = DeployConfig().resolved().lora_in_turn
+            spec |= {"lora_in_turn": in_turn, "lora_labels": plan.lora_labels}
+        return spec
     return spec | {"algos": list(plan.baseline_algos), "preset": plan.baseline_preset,
                    "stop_over_budget": True, "data": ckpt_id["data"]}
 
@@ -78,14 +78,6 @@ def _has_lora(e: Experiment) -> bool:
     from safecdt_jax.deploy.config import make_variant
 
     return any(bool(make_variant(v).lora) for v, _ in e.runs)
-
-
-def _lora_in_turn(e: Experiment, plan: PaperPlan) -> bool:
-    """Whether deployment `e` takes LoRA steps with the seeds' gradients in turn."""
-    from safecdt_jax.deploy.config import DeployConfig
-
-    in_turn = DeployConfig(lora_in_turn=plan.lora_in_turn).resolved().lora_in_turn
-    return in_turn and _has_lora(e)
 
 
 def _compact(results: dict[str, Any], decimals: int = 5) -> dict[str, Any]:
@@ -140,7 +132,7 @@ def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan, ckpt: P
     from safecdt_jax.deploy.job import run_deployment
 
     cfg = DeployConfig(episodes=e.episodes, horizon=plan.horizon, budget=plan.budget,
-                       lora_in_turn=_lora_in_turn(e, plan), lora_labels=plan.lora_labels)
+                       lora_labels=plan.lora_labels)
     results = run_deployment(ckpt, spec["task"], [], [], e.seeds, seed=plan.seed, cfg=cfg,
                              progress=progress, runs=e.runs)
     return _compact(results)
@@ -164,7 +156,7 @@ def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path, folder: Path,
     `folder/KEY.json` when finished with the same spec, else run and written there atomically.
     None for baselines that are neither cached nor to be trained (`plan.train_baselines`).
     `ckpt_id`: `checkpoint_identity(ckpt)`, when the caller has it."""
-    from safecdt_jax.data.dataset import write_text_atomic
+    from safecdt_jax.io import write_text_atomic
 
     spec = experiment_spec(e, plan, ckpt_id or checkpoint_identity(ckpt))
     path = folder / f"{e.key}.json"

@@ -14,7 +14,7 @@ import numpy as np
 
 from safecdt_jax.paper import reference as ref
 from safecdt_jax.paper.plan import PaperPlan, ctg_variants
-from safecdt_jax.report.tables import markdown_table, summarize_runs
+from safecdt_jax.results.tables import markdown_table, summarize_runs
 
 Records = Mapping[str, Mapping[str, Any]]
 MISSING = "(not run: see the header)"

@@ -25,7 +25,6 @@ from safecdt_jax.pretrain.loop import (
     make_update,
     prepare_data,
     run_key,
-    stream_key,
     train,
 )
 from safecdt_jax.pretrain.run import (
@@ -35,7 +34,7 @@ from safecdt_jax.pretrain.run import (
     ensure_checkpoint,
     plan,
     pretrain,
-    run,
+    train_run,
 )
 
 __all__ = [
@@ -62,9 +61,8 @@ __all__ = [
     "pretrain",
     "read_meta",
     "restore_state",
-    "run",
     "run_key",
     "save_checkpoint",
-    "stream_key",
     "train",
+    "train_run",
 ]

@@ -20,34 +20,15 @@ from safecdt_jax.model import CDTConfig, OptimConfig, Params, TrainState, init_t
 from safecdt_jax.pretrain.config import PretrainConfig
 from safecdt_jax.pretrain.normalize import IONorm, fold_io_norm
 
-FORMAT = 1  # bump when the layout of `meta` or the state changes incompatibly
+# Bump when the layout of `meta` or the state changes incompatibly. 2: every config field and
+# the label support recorded (format 1's older layouts were read through defaults).
+FORMAT = 2
 
 # Fields of the run config that may differ between a checkpoint and a resumed run: how far to
 # train, how often to save and how many updates one jitted call runs do not change what update
 # `i` computes (its key is fold_in(seed, i)); bit-identity is tested for an unchanged chunk.
 RESUMABLE_FIELDS = frozenset({"pretrain.steps", "pretrain.checkpoint_every",
                               "pretrain.max_to_keep", "pretrain.chunk"})
-
-
-# Run-config fields added after checkpoints were first written, with the value those older
-# checkpoints were trained with; a meta without them reads as these.
-LEGACY_PRETRAIN = {"scale_actions": False, "standardize_obs": False, "relabel_percent": 0.2,
-                   "labels": "episode", "micro_batch": 0, "return_span": [], "cost_span": []}
-# Model fields added later, likewise (OSRL's linear token encoding).
-LEGACY_MODEL = {"token_bins": 0, "token_rates": False, "constant_targets": False,
-                "return_edges": [], "cost_edges": []}
-# The token scales moved from the run config to the model config; older metas keep them there.
-TOKEN_FIELDS = ("reward_scale", "cost_scale")
-
-
-def migrate_meta(meta: dict[str, Any]) -> dict[str, Any]:
-    """`meta` in today's layout: token scales saved under `pretrain` by older versions move to
-    `model` (where `CDTConfig` keeps them), so an old checkpoint reads its tokens as trained."""
-    model, pretrain = dict(meta.get("model", {})), dict(meta.get("pretrain", {}))
-    for name in TOKEN_FIELDS:
-        if name in pretrain:
-            model.setdefault(name, pretrain.pop(name))
-    return {**meta, "model": model, "pretrain": pretrain}
 
 
 class CheckpointError(ValueError):
@@ -134,15 +115,13 @@ def read_meta(path: str | os.PathLike, step: int | None = None) -> dict[str, Any
         raise CheckpointError(
             f"{os.fspath(path)}: checkpoint format {meta.get('format')!r}, this code reads {FORMAT}"
         )
-    return migrate_meta(meta)
+    return meta
 
 
 def configs_from_meta(meta: dict[str, Any]) -> tuple[CDTConfig, OptimConfig, PretrainConfig]:
     """The model, optimiser and run configs recorded in a checkpoint's metadata."""
-    meta = migrate_meta(meta)
     model = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["model"].items()}
-    pretrain = {k: tuple(v) if isinstance(v, list) else v
-                for k, v in {**LEGACY_PRETRAIN, **meta["pretrain"]}.items()}
+    pretrain = {k: tuple(v) if isinstance(v, list) else v for k, v in meta["pretrain"].items()}
     return CDTConfig(**model), OptimConfig(**meta["optim"]), PretrainConfig(**pretrain)
 
 
@@ -235,16 +214,11 @@ def config_diff(saved: dict[str, Any], requested: dict[str, Any]) -> list[str]:
     """Fields that differ between two metas, as `"section.field: saved -> requested"` strings.
 
     Compares the task, the three configs and the data set fingerprint; fields in
-    `RESUMABLE_FIELDS` are ignored (a resumed run may train longer or save more often), and a
-    run-config or model field missing from an older meta reads as its `LEGACY_PRETRAIN` /
-    `LEGACY_MODEL` value.
+    `RESUMABLE_FIELDS` are ignored (a resumed run may train longer or save more often).
     """
     diffs = []
-    saved, requested = migrate_meta(saved), migrate_meta(requested)
     for section in ("model", "optim", "pretrain"):
         a, b = saved.get(section, {}), requested.get(section, {})
-        legacy = {"pretrain": LEGACY_PRETRAIN, "model": LEGACY_MODEL}.get(section, {})
-        a, b = {**legacy, **a}, {**legacy, **b}
         for name in sorted(set(a) | set(b)):
             field = f"{section}.{name}"
             if field not in RESUMABLE_FIELDS and a.get(name) != b.get(name):

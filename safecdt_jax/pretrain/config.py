@@ -7,6 +7,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from safecdt_jax import validate as check
+from safecdt_jax.presets import CPU_MICRO_BATCH, PRETRAIN
 
 LABELS = ("episode", "policy", "auto")  # what the return- and cost-to-go tokens count from
 
@@ -43,12 +44,12 @@ class PretrainConfig:
             layout's luck; the tokens still fall by the realised rewards and costs (unless
             `CDTConfig.constant_targets`). `"auto"`: `"policy"` when the data name each
             episode's behaviour policy (`episode_info/snapshot`, as expert data do), else
-            `"episode"` (scripted or downloaded DSRL data).
+            `"episode"` (e.g. downloaded DSRL data, which do not name them).
         scale_actions: train on actions divided by the data's largest |action| per dimension,
             then fold the scale into the saved weights (`safecdt_jax.pretrain.normalize`), which
             emit raw actions either way. Off by default, as in OSRL, whose agents' actions fill
-            [-1, 1]; the Car's scripted wheel commands stay within +-0.02 (its actuators
-            saturate there). Measured effects: docs/CDT_FINDINGS.md, sections 1 and 2.
+            [-1, 1]; executed Car wheel commands stay within +-0.02 (its actuators
+            saturate there). Measured effects: docs/METHOD.md section 8.
         standardize_obs: train on observations standardised by the data's mean and std (also
             folded into the weights). Off by default: on CarCircle1 it loses the cost response.
         return_span: raw returns (lo, hi) the return token's ramp edges cover at least, whatever
@@ -102,35 +103,6 @@ class PretrainConfig:
         return dataclasses.replace(self, **changes)
 
 
-# Defaults per model preset. `cpu`: 10,000 updates of 32 windows. On the 2-core CPU an update
-# takes 14-24 ms at batch 32 but 52-80 ms at 64 (the batch-64 activations spill the 1 MB per-core
-# L2), and at equal wall time batch 32 reached a better log-likelihood than 64 on collected
-# CarGoal1 data; so pretraining takes ~2.5 min on an idle box, ~4-5 min when the cores are shared
-# (benchmarks/train_throughput.py). `osrl` and `paper` use OSRL's full schedule, meant for an
-# accelerator. The token encoding (RTG and CTG scales, the cost offset) belongs to the model:
-# `CDTConfig`.
-_DEFAULTS: dict[str, dict[str, Any]] = {
-    "tiny": dict(steps=200, batch_size=16),
-    # Policy-mean labels, a relabelled copy of every episode, normalised inputs and outputs:
-    # with the model preset's constant ramp tokens, what makes the cost follow its target
-    # (docs/CDT_FINDINGS.md sections 13-15 and 17).
-    "cpu": dict(steps=10_000, batch_size=32, labels="auto", relabel_percent=1.0,
-                scale_actions=True, standardize_obs=True, return_span=(-50.0, 100.0),
-                cost_span=(0.0, 100.0)),
-    "osrl": dict(steps=100_000, batch_size=2048),
-    "paper": dict(steps=100_000, batch_size=2048),
-}
-
-
-# Windows per pass on a CPU backend, per preset. An update runs fastest on a CPU in passes small
-# enough that their activations stay in cache: at batch 2048 (`osrl` preset, one thread) passes
-# of 8-16 windows took half the time of one pass, 2.2-2.3x OSRL's step; the `paper` preset's
-# model gains 1.7x at batch 256 (docs/PERFORMANCE.md). The `cpu` preset's batch of 32 already
-# fits (passes of 8-16 gained nothing there), so it stays one pass. Accelerators want the whole
-# batch in one pass.
-CPU_MICRO_BATCH = {"osrl": 16, "paper": 16}
-
-
 def default_pretrain(
     preset: str, *, backend: str | None = None, **overrides: Any
 ) -> PretrainConfig:
@@ -141,9 +113,9 @@ def default_pretrain(
     `micro_batch`: the same update up to summation order, with each pass's own dropout draws.
     Raises ValueError for an unknown preset name.
     """
-    if preset not in _DEFAULTS:
-        raise ValueError(f"unknown CDT preset {preset!r}; choose one of {', '.join(_DEFAULTS)}")
-    cfg = PretrainConfig(**_DEFAULTS[preset]).replace(**overrides)
+    if preset not in PRETRAIN:
+        raise ValueError(f"unknown CDT preset {preset!r}; choose one of {', '.join(PRETRAIN)}")
+    cfg = PretrainConfig(**PRETRAIN[preset]).replace(**overrides)
     if "micro_batch" not in overrides and preset in CPU_MICRO_BATCH:
         import jax
 

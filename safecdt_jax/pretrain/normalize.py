@@ -10,7 +10,7 @@ Why: the Car's wheel commands live in +-0.02 (its actuators saturate there) and 
 span 0.001-16, while the CDT's heads and embeddings start at N(0, 0.02^2). A context-1 `cpu`
 CDT network fitted to careful CarGoal1 driving (Adam 3e-4, MSE, 10,000 updates of 256) costs
 49 per episode on raw observations and 22 standardised, a per-step MLP's 21, both with actions
-scaled (docs/CDT_FINDINGS.md, sections 1 and 2, for these and the full pipeline's numbers).
+scaled (docs/METHOD.md, section 8, for these numbers and what else normalisation changed).
 
     norm = fit_io_norm(data)                     # statistics of the valid steps
     train_on = normalise_dataset(data, norm)     # what the optimiser sees

@@ -4,14 +4,11 @@ from __future__ import annotations
 
 import hashlib
 import os
-import platform
 import shutil
 import time
-from importlib import metadata as importlib_metadata
 from pathlib import Path
 from typing import Any, NamedTuple
 
-import jax
 import numpy as np
 
 from safecdt_jax.data import (
@@ -48,8 +45,15 @@ from safecdt_jax.pretrain.config import PretrainConfig, default_pretrain
 from safecdt_jax.pretrain.loop import History, labelled, prepare_data, stream_key, train
 from safecdt_jax.pretrain.normalize import IONorm, fit_io_norm, normalise_dataset
 from safecdt_jax.pretrain.support import label_support
+from safecdt_jax.tensorboard import write_scalars
+from safecdt_jax.versions import versions
 
-_PACKAGES = ("safecdt-jax", "jax", "jaxlib", "flax", "optax", "orbax-checkpoint", "numpy")
+
+def tensorboard_dir(ckpt: str | os.PathLike) -> Path:
+    """Where a checkpoint folder's pretraining curves go as TensorBoard events: beside it,
+    `<folder>-tensorboard` (the checkpoint folder itself holds only orbax's steps)."""
+    ckpt = Path(ckpt)
+    return ckpt.parent / f"{ckpt.name}-tensorboard"
 
 
 class RunSpec(NamedTuple):
@@ -65,12 +69,22 @@ class RunSpec(NamedTuple):
 
 
 class PretrainResult(NamedTuple):
-    """What `pretrain` returns: checkpoint folder, final state, loss history, final metadata."""
+    """What `pretrain` returns: checkpoint folder, final training state, loss history, final
+    metadata. `state.params` are in the units the model trained in, normalised when the run
+    scales actions or standardises observations (the `cpu` preset does both): to act, use
+    `policy()`, whose params read raw observations and emit raw actions."""
 
     path: Path
     state: TrainState
     history: History
     meta: dict[str, Any]
+
+    def policy(self):
+        """The trained policy as deployment loads it (`checkpoint.load_checkpoint`: raw-unit
+        params, the model config, the metadata)."""
+        from safecdt_jax.pretrain.checkpoint import load_checkpoint
+
+        return load_checkpoint(self.path)
 
 
 def dataset_record(path: str | os.PathLike, data: Dataset) -> dict[str, Any]:
@@ -98,17 +112,6 @@ def dataset_record(path: str | os.PathLike, data: Dataset) -> dict[str, Any]:
         "cost_mean": float(costs.mean()),
         "cost_max": float(costs.max()),
     }
-
-
-def versions() -> dict[str, str]:
-    """Python, accelerator backend and the versions of the packages that shape the result."""
-    out = {"python": platform.python_version(), "backend": jax.default_backend()}
-    for name in _PACKAGES:
-        try:
-            out[name] = importlib_metadata.version(name)
-        except importlib_metadata.PackageNotFoundError:
-            out[name] = "not installed"
-    return out
 
 
 def _episode_len(data: Dataset, task: str) -> int:
@@ -204,15 +207,15 @@ def pretrain(
 ) -> PretrainResult:
     """Pretrain a CDT preset on a DSRL-format file, checkpointing into folder `out`.
 
-    See `plan` for how the task, sizes and defaults are chosen, and `run` for `resume` and
+    See `plan` for how the task, sizes and defaults are chosen, and `train_run` for `resume` and
     `overwrite`. Returns `PretrainResult(path, state, history, meta)`.
     """
     spec = plan(data_path, out, preset=preset, config=config, optim=optim, task=task,
                 model_overrides=model_overrides)
-    return run(spec, resume=resume, overwrite=overwrite, progress=progress)
+    return train_run(spec, resume=resume, overwrite=overwrite, progress=progress)
 
 
-def run(
+def train_run(
     spec: RunSpec, *, resume: bool = False, overwrite: bool = False, progress: bool = True
 ) -> PretrainResult:
     """Train the run `spec` (from `plan`), checkpointing into `spec.out`.
@@ -246,6 +249,7 @@ def run(
         history = History.from_json(saved.get("history", {}))
     else:
         state = init_train_state(stream_key(cfg.seed, "init"), spec.cdt_cfg, spec.optim)
+        shutil.rmtree(tensorboard_dir(out), ignore_errors=True)  # curves of a deleted run
 
     t0 = time.perf_counter()
     data = spec.data
@@ -255,7 +259,8 @@ def run(
     dataset = {**spec.meta["dataset"], "n_relabelled": n_relabelled,
                "n_sampled": int(np.sum(np.asarray(weights) > 0))}
     setup_s = time.perf_counter() - t0
-    last = {"step": int(state.step), "meta": None}  # the newest checkpoint written by this call
+    last = {"step": int(state.step), "meta": None,  # the newest checkpoint written by this call
+            "curves": len(history.step)}  # history points already in the TensorBoard events
 
     def save(state: TrainState, history: History) -> None:
         step = int(state.step)
@@ -263,7 +268,9 @@ def run(
                   "history": history.to_json(), "wall_time_s": history.wall_s,
                   "setup_s": setup_s, "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
         save_checkpoint(out, state, record, max_to_keep=cfg.max_to_keep)
-        last.update(step=step, meta=record)
+        curves = {f"pretrain/{k}": v for k, v in history.metrics.items()}
+        write_scalars(tensorboard_dir(out), curves, history.step, start=last["curves"])
+        last.update(step=step, meta=record, curves=len(history.step))
 
     def on_chunk(state: TrainState, history: History) -> None:
         # Save when this chunk crossed a multiple of checkpoint_every (the end is saved below).
@@ -281,7 +288,7 @@ def run(
 
 def ensure_checkpoint(
     data_path: str | os.PathLike,
-    task: str,
+    task: str | None,
     preset: str = "cpu",
     steps: int | None = None,
     *,
@@ -297,7 +304,8 @@ def ensure_checkpoint(
     """The folder of a pretrained checkpoint for this data and config, training only if needed.
 
     `model_overrides` replace fields of the preset's `CDTConfig` (e.g. `token_bins`),
-    `pretrain_overrides` fields of its `PretrainConfig` (e.g. `labels`).
+    `pretrain_overrides` fields of its `PretrainConfig` (e.g. `labels`). `task` None: the
+    file's `task` attribute, else its name (`plan`).
 
     Reuses the checkpoint in `out` (default `paths.checkpoint_dir(task, preset)`) when its
     configs and data match and it has reached `steps` (default: the preset's); resumes it when
@@ -315,12 +323,17 @@ def ensure_checkpoint(
     done = checkpoint_steps(spec.out)
     retrain = False
     if done:
-        diffs = config_diff(read_meta(spec.out), spec.meta)
+        try:
+            diffs = config_diff(read_meta(spec.out), spec.meta)
+        except CheckpointError as e:  # written by an older format: unreadable, so retrain
+            if not overwrite:
+                raise
+            diffs = [str(e)]
         if diffs and not overwrite:
             raise CheckpointError(f"{spec.out} holds a checkpoint of another run ("
                                   + "; ".join(diffs) + "); pass overwrite to retrain")
         retrain = bool(diffs)
         if not retrain and done[-1] >= cfg.steps:
             return spec.out
-    run(spec, resume=True, overwrite=retrain, progress=progress)
+    train_run(spec, resume=True, overwrite=retrain, progress=progress)
     return spec.out

@@ -23,19 +23,9 @@ def label_support(data, c0: float) -> dict[str, list[float]]:
 
 
 def checkpoint_support(meta: dict[str, Any]) -> dict[str, list[float]] | None:
-    """The label support a checkpoint's `meta` records (`token_support`). A checkpoint written
-    before it was recorded, with ramp edges fitted to its data alone, reads it from the ends of
-    those edges (the weighted 0 and 1 quantiles of its tokens); otherwise None (unknown)."""
-    if "token_support" in meta:
-        return meta["token_support"]
-    model, pretrain = meta.get("model", {}), meta.get("pretrain", {})
-    if not model.get("token_bins") or pretrain.get("return_span") or pretrain.get("cost_span"):
-        return None
-    r, c = model.get("return_edges") or [], model.get("cost_edges") or []
-    if not (r and c):
-        return None
-    r_scale, c_scale = model.get("reward_scale", 0.1), model.get("cost_scale", 1.0)
-    return {"return": [r[0] / r_scale, r[-1] / r_scale], "cost": [c[0] / c_scale, c[-1] / c_scale]}
+    """The label support a checkpoint's `meta` records (`token_support`: the lowest and highest
+    return and cost label it was trained on, raw units), or None where it has none."""
+    return meta.get("token_support")
 
 
 def _outside(values: Iterable[float], lo: float, hi: float) -> list[float]:

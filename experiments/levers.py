@@ -1,0 +1,117 @@
+"""Do Safe-CDT's levers reach the model? Pretraining seeds x deployment seeds, per pair and rule.
+
+    python -m experiments.levers [--pairs CC1-CC2,PC1-PC2,CG1-CG2] [--ckpt-seeds 0,1,2]
+        [--seeds 5] [--rules stage,hindsight,target] [--edges span|data] [--work DIR]
+        [--out PATH]
+
+For each pair and pretraining seed: a `cpu`-preset CDT pretrained on the source task's default
+data (`--edges data`: token ramp edges at the data's quantiles alone, as before 2026-12-06), then,
+in the target task at B = 30 with `--seeds` deployment seeds x 50 episodes:
+- zero-shot at the fixed cost ratios 0.2 / 0.4 / 0.6 / 0.8 / 1.0 (the paper's Table 5), one sweep;
+- Safe-CDT and naive LoRA under each LoRA label rule (`DeployConfig.lora_labels`).
+Per (pair, rule, variant) the table gives the mean over checkpoints x seeds of VR, cost, cost
+over episodes 41-50 and the drift (episodes 41-50 minus 1-10), each with its spread across
+pretraining seeds (std of the checkpoints' means) and across deployment seeds (mean of the
+checkpoints' seed stds). Checkpoints and every sweep's results.json live under `--work`
+(default `runs/levers`) and are reused, so an interrupted run continues.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from benchmarks.common import machine, markdown_table, write_json, write_markdown
+from safecdt_jax.stats import per_seed_metrics, seed_spread
+
+RATIOS = (0.2, 0.4, 0.6, 0.8, 1.0)
+BUDGET = 30.0
+
+
+def checkpoint(pair: str, seed: int, edges: str, work: Path) -> Path:
+    """The pair's source-task checkpoint for `seed`, pretrained into `work` unless there."""
+    from safecdt_jax.experts.collect import ensure_source_data
+    from safecdt_jax.pairs import parse_pair
+    from safecdt_jax.pretrain import default_pretrain, pretrain
+
+    out = work / "ckpt" / f"{pair}_{edges}_s{seed}"
+    if not (out / "done").exists():
+        cfg = default_pretrain("cpu", seed=seed)
+        if edges == "data":
+            cfg = cfg.replace(return_span=(), cost_span=())
+        pretrain(ensure_source_data(parse_pair(pair)[0]), out, preset="cpu", config=cfg,
+                 overwrite=True, progress=False)
+        (out / "done").write_text("")
+    return out
+
+
+def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule: str,
+          seeds: int, work: Path) -> dict:
+    """One deployment sweep's results record, from `work` or run and written there."""
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.deploy.job import run_deployment, write_results
+    from safecdt_jax.pairs import parse_pair
+
+    out = work / "res" / f"{pair}_{edges}_s{seed}_{name}"
+    if not (out / "results.json").exists():
+        res = run_deployment(checkpoint(pair, seed, edges, work), parse_pair(pair)[1], variants,
+                             [BUDGET], seeds, seed=seed, cfg=DeployConfig(lora_labels=rule),
+                             progress=False)
+        write_results(out, res, f"levers {pair} {edges} seed {seed} {name}")
+    return json.loads((out / "results.json").read_text())
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--pairs", default="CC1-CC2,PC1-PC2,CG1-CG2")
+    ap.add_argument("--ckpt-seeds", default="0,1,2")
+    ap.add_argument("--seeds", type=int, default=5)
+    ap.add_argument("--rules", default="stage,hindsight,target")
+    ap.add_argument("--edges", default="span", choices=("span", "data"))
+    ap.add_argument("--work", type=Path, default=Path("runs/levers"))
+    ap.add_argument("--out", type=Path, default=Path("experiments/results/levers.json"))
+    args = ap.parse_args(argv)
+    fixed = ["zero_shot" if r == 0.6 else f"fixed_ctg({r})" for r in RATIOS]
+    table5, cells = [], {}
+    for pair in args.pairs.split(","):
+        for seed in (int(s) for s in args.ckpt_seeds.split(",")):
+            runs = {r["variant"]: per_seed_metrics(r) for r in sweep(
+                pair, seed, args.edges, "fixed", fixed, "stage", args.seeds, args.work)["runs"]}
+            costs = [float(runs[v]["cost"].mean()) for v in fixed]
+            table5.append({"pair": pair, "ckpt_seed": seed, "costs": costs,
+                           "ratio_02_10": costs[0] / costs[-1]})
+            for rule in args.rules.split(","):
+                res = sweep(pair, seed, args.edges, rule, ["safe_cdt", "naive_lora"], rule,
+                            args.seeds, args.work)
+                found = {**{r["variant"]: per_seed_metrics(r) for r in res["runs"]},
+                         "zero_shot": runs["zero_shot"]}
+                for variant, m in found.items():
+                    key = (pair, "-" if variant == "zero_shot" else rule, variant)
+                    for name, v in m.items():
+                        cells.setdefault(key, {}).setdefault(name, {})[seed] = v
+            print(f"{pair} seed {seed}: done", file=sys.stderr, flush=True)
+    rows = [{"pair": p, "labels": r, "variant": v, "checkpoints": len(m["vr"]),
+             **{k: seed_spread(list(m[k].values())) for k in m}}
+            for (p, r, v), m in sorted(cells.items())]
+    command = "python -m experiments.levers " + " ".join(sys.argv[1:] if argv is None else argv)
+    write_json(args.out, {"command": command, "machine": machine(), "edges": args.edges,
+                          "seeds": args.seeds, "budget": BUDGET, "table5": table5, "rows": rows})
+    fmt = lambda s: f"{s['mean']:.1f} ({s['ckpt_std']:.1f} / {s['seed_std']:.1f})"
+    body = markdown_table(
+        ["pair", "labels", "run", "ckpts", "VR %", "cost", "cost 41-50", "drift", "reward"],
+        [[r["pair"], r["labels"], r["variant"], r["checkpoints"], fmt(r["vr"]), fmt(r["cost"]),
+          fmt(r["late"]), fmt(r["drift"]), fmt(r["reward"])] for r in rows])
+    body += ("\n\nmean over checkpoints x deployment seeds (spread across pretraining seeds / "
+             "across deployment seeds)\n\n")
+    body += markdown_table(
+        ["pair", "ckpt seed", *[f"cost @ CR {r:g}" for r in RATIOS], "CR 0.2 / CR 1"],
+        [[t["pair"], t["ckpt_seed"], *[f"{c:.2f}" for c in t["costs"]],
+          f"{t['ratio_02_10']:.2f}"] for t in table5])
+    write_markdown(args.out.with_suffix(".md"), "Safe-CDT's levers", command, body)
+    print(args.out.with_suffix(".md").read_text())
+
+
+if __name__ == "__main__":
+    main()
