@@ -46,6 +46,11 @@ def write_scalars(folder: str | os.PathLike, series: Mapping[str, Sequence[float
     return folder
 
 
+def run_folder(label: str) -> str:
+    """A run label (`safe_cdt B=30`, `limit 5 seed 0`) as a folder name TensorBoard lists."""
+    return "".join(c if c.isalnum() or c in "._=-" else "_" for c in label)
+
+
 def deployment_curves(folder: str | os.PathLike, runs: Mapping[str, Mapping[str, Sequence]]
                       ) -> list[Path]:
     """One event folder per deployment run (`folder/<label>`): per episode, the mean over seeds
@@ -65,7 +70,6 @@ def deployment_curves(folder: str | os.PathLike, runs: Mapping[str, Mapping[str,
             if key in metrics:
                 mean = np.asarray(metrics[key], np.float64).mean(axis=0)
                 series[tag] = 100 * mean if key == "violation" else mean
-        safe = "".join(c if c.isalnum() or c in "._=-" else "_" for c in label)
-        written.append(write_scalars(Path(folder) / safe, series,
+        written.append(write_scalars(Path(folder) / run_folder(label), series,
                                      steps=range(1, len(next(iter(series.values()))) + 1)))
     return written

@@ -31,6 +31,9 @@ def test_run_end_to_end_then_reuses_data_and_checkpoint(cache):
     assert "| safe_cdt |" in (out / "table.md").read_text()
     for name in ("cost.png", "ctg_target.png", "violation_rate.png"):
         assert (out / name).stat().st_size > 1000
+    assert sorted(p.name for p in (out / "tensorboard").iterdir()) == ["safe_cdt", "zero_shot"]
+    pretrain_curves = cache / "cache" / "checkpoints" / "PointCircle1-tiny-tensorboard"
+    assert any(pretrain_curves.glob("events.out.tfevents.*"))
 
     data = cache / "cache" / "datasets" / "PointCircle1.hdf5"
     ckpt = cache / "cache" / "checkpoints" / "PointCircle1-tiny"

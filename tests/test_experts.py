@@ -217,6 +217,9 @@ def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
         str(tmp_path / "run"), "--snapshots", str(snaps), "--keep", "2"])
     assert res.exit_code == 0, res.output
     assert "limit 5, seed 0" in res.output and (tmp_path / "run" / "curves.png").exists()
+    runs = sorted(p.name for p in (tmp_path / "run" / "tensorboard").iterdir())
+    assert len(runs) == 2 and all(any(p.glob("events.out.tfevents.*"))
+                                  for p in (tmp_path / "run" / "tensorboard").iterdir())
     out = tmp_path / "data.hdf5"
     res = CliRunner().invoke(app, ["collect", "--task", "PointCircle1", "--snapshots",
                                    str(snaps), "--episodes", "6", "--out", str(out)])

@@ -36,14 +36,13 @@ def write_curves(path: str | os.PathLike, run: ExpertRun) -> Path:
 def write_tensorboard(folder: str | os.PathLike, run: ExpertRun) -> Path:
     """The learning curves as TensorBoard events, one folder per run (`folder/<label>`), each
     curve tagged `expert/<name>` against env steps. Returns `folder`."""
-    from safecdt_jax.tensorboard import write_scalars
+    from safecdt_jax.tensorboard import run_folder, write_scalars
 
     rounds = run.curves["return"].shape[1]
     steps = [run.cfg.num_envs * run.cfg.horizon * (i + 1) for i in range(rounds)]
     for i, label in enumerate(run.labels):
-        safe = "".join(c if c.isalnum() or c in "._=-" else "_" for c in label)
-        write_scalars(Path(folder) / safe, {f"expert/{k}": v[i] for k, v in run.curves.items()},
-                      steps)
+        write_scalars(Path(folder) / run_folder(label),
+                      {f"expert/{k}": v[i] for k, v in run.curves.items()}, steps)
     return Path(folder)
 
 
