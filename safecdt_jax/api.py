@@ -27,10 +27,6 @@ import numpy as np
 
 from safecdt_jax.pretrain.checkpoint import Checkpoint, load_policy
 
-# The per-episode metrics of a deployment run, each [seeds, episodes], as results.json names them.
-METRICS = ("return", "cost", "violation", "ctg_target", "rtg_target", "lambda", "a_c", "a_r",
-           "lora_loss")
-
 
 def collect(task: str, *, episodes: int | None = None, seed: int = 0,
             out: str | os.PathLike | None = None, progress: bool = False) -> Path:
@@ -61,10 +57,10 @@ def pretrain(data: str | os.PathLike, *, preset: str = "cpu", steps: int | None 
 @dataclasses.dataclass(frozen=True)
 class DeployedRun:
     """One (variant, budget, dynamics shift) run of a deployment: `metrics[name]` is a
-    [seeds, episodes] array for each name of `METRICS` (return and cost per episode; violation
-    1.0 where the cost exceeded the budget; the targets the episode ran under; the replay
-    lambda; the scheduler's ratios; the mean LoRA loss), `summary` the across-seed means and
-    population stds of the per-seed means (reward, cost, VR in %)."""
+    [seeds, episodes] array for each name of `results.METRIC_NAMES` (return and cost per
+    episode; violation 1.0 where the cost exceeded the budget; the targets the episode ran
+    under; the replay lambda; the scheduler's ratios; the mean LoRA loss), `summary` the
+    across-seed means and population stds of the per-seed means (reward, cost, VR in %)."""
 
     variant: str
     budget: float
@@ -177,7 +173,6 @@ def evaluate(ckpt: str | os.PathLike, task: str, targets: Sequence[tuple[float, 
 
 
 __all__ = [
-    "METRICS",
     "Checkpoint",
     "DeployedRun",
     "Deployment",

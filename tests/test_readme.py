@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from safecdt_jax.paper.readme import END, START, results_block, sync_readme
+from safecdt_jax.results import METRIC_NAMES
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -27,6 +28,7 @@ def test_readme_python_example_runs_and_returns_arrays(tmp_path, monkeypatch, ca
     result, table = scope["result"], scope["table"]
     assert [r.variant for r in result.runs] == ["safe_cdt", "zero_shot"]
     for run in result.runs:
+        assert tuple(run.metrics) == METRIC_NAMES
         assert run.cost.shape == run.reward.shape == run.violation.shape == (2, 2)
         assert np.array_equal(run.violation, run.cost > 30)
         assert run.summary["mean_cost_mean"] == pytest.approx(run.cost.mean(axis=1).mean())

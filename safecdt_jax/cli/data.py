@@ -55,7 +55,7 @@ def collect_cmd(
             snapshot_path(task)
         path = check_writable(paths.dataset_path(task, actions) if out is None else out)
     except ValueError as e:
-        fail(str(e))
+        fail(e)
     start = time.perf_counter()
     key = jax.random.PRNGKey(seed)
     total = planned_episodes(task, episodes) if snapshots is None else None
@@ -91,7 +91,7 @@ def data_summary(
         data = load_dataset(path)
         s = summarize_dataset(data, png_path=png)
     except DatasetError as e:
-        fail(str(e))
+        fail(e)
     except OSError as e:
         fail(f"cannot write {png}: {e}")
     attrs = data.attrs

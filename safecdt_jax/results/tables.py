@@ -8,7 +8,8 @@ from typing import Any
 import numpy as np
 
 # Per-episode metric arrays of a deployment, each [seeds, episodes] (docs/METHOD.md section 6).
-METRIC_NAMES = ("return", "cost", "violation", "ctg_target", "rtg_target", "lambda", "a_c", "a_r")
+METRIC_NAMES = ("return", "cost", "violation", "ctg_target", "rtg_target", "lambda", "a_c", "a_r",
+                "lora_loss")
 
 
 def seed_summaries(metrics: Mapping[str, Any]) -> dict[str, np.ndarray]:
