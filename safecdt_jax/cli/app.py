@@ -2,7 +2,7 @@
 one way a command reports bad input."""
 
 import os
-from typing import NoReturn
+from typing import Annotated, NoReturn
 
 os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
 
@@ -45,3 +45,29 @@ def enable_persistent_cache() -> None:
     if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
         jax.config.update("jax_compilation_cache_dir", str(cache_root() / "xla"))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 1.0)
+
+
+# Several cooperating processes (`safecdt_jax.distributed`): the same command started N times.
+Coordinator = Annotated[str | None, typer.Option(
+    envvar="JAX_COORDINATOR_ADDRESS", rich_help_panel="Several processes",
+    help="HOST:PORT of process 0's coordinator, when N processes cooperate on one sweep.")]
+NumProcesses = Annotated[int | None, typer.Option(
+    min=1, envvar="JAX_NUM_PROCESSES", rich_help_panel="Several processes",
+    help="How many processes cooperate (default 1: this process alone).")]
+ProcessId = Annotated[int | None, typer.Option(
+    min=0, envvar="JAX_PROCESS_ID", rich_help_panel="Several processes",
+    help="This process's id, 0..N-1; process 0 writes the results.")]
+
+
+def join_processes(coordinator: str | None, num_processes: int | None,
+                   process_id: int | None) -> bool:
+    """Join the cooperating processes these options describe (`distributed.initialize`), or
+    report bad settings or a failed start as one line; returns whether several cooperate.
+    Must run before the command computes anything with JAX."""
+    from safecdt_jax import distributed
+
+    try:
+        return distributed.initialize(
+            distributed.cluster_from(coordinator, num_processes, process_id))
+    except (ValueError, RuntimeError) as e:  # bad settings; a peer or coordinator not reached
+        fail(str(e).strip().splitlines()[0] if str(e).strip() else repr(e))

@@ -6,7 +6,7 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app, fail
+from safecdt_jax.cli.app import Coordinator, NumProcesses, ProcessId, app, fail, join_processes
 from safecdt_jax.deploy.config import VARIANT_SPECS, DeployConfig
 from safecdt_jax.progress import Bar
 
@@ -72,6 +72,11 @@ def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, seed, out,
                              dynamics=parse_dynamics(dynamics),
                              stochastic_actions=parse_action_mode(act))
     written = write_results(out, results, title)
+    if not written:  # one of several cooperating processes: process 0 writes
+        import jax
+
+        typer.echo(f"process {jax.process_index()}: done; process 0 writes {out}")
+        return results
     typer.echo((Path(out) / "table.md").read_text())
     typer.echo("wrote " + ", ".join(str(p) for p in written))
     return results
@@ -91,12 +96,17 @@ def deploy(
     dynamics: Dynamics = None,
     act: Act = "checkpoint",
     settings: SetFields = None,
+    coordinator: Coordinator = None,
+    num_processes: NumProcesses = None,
+    process_id: ProcessId = None,
 ) -> None:
     """Deploys a pretrained CDT in the pair's target task: every variant x budget x dynamics
-    shift x seed at once."""
+    shift x seed at once (the seeds sharded over every device of N cooperating processes with
+    --num-processes, docs/CLI.md)."""
     from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.pairs import parse_pair
 
+    join_processes(coordinator, num_processes, process_id)
     try:
         _, target = parse_pair(pair)
         _check_runs(variant, budget, episodes, dynamics, settings)
@@ -124,24 +134,36 @@ def run(
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
     settings: SetFields = None,
+    coordinator: Coordinator = None,
+    num_processes: NumProcesses = None,
+    process_id: ProcessId = None,
 ) -> None:
-    """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report."""
+    """The whole chain: reuse or collect the source data, reuse or pretrain, deploy, report.
+    With N cooperating processes process 0 makes the data and checkpoint while the others
+    wait, then all deploy together."""
+    from safecdt_jax.distributed import process_zero_first
     from safecdt_jax.experts.collect import ensure_source_data, planned_episodes
     from safecdt_jax.pairs import parse_pair
     from safecdt_jax.pretrain.run import ensure_checkpoint
 
+    join_processes(coordinator, num_processes, process_id)
     start = time.perf_counter()
     try:
         source, target = parse_pair(pair)
         _check_runs(variant, budget, episodes, dynamics, settings)
         typer.echo(f"[1/3] source data: {source}, expert behaviour")
-        with Bar(planned_episodes(source, data_episodes), f"collect {source}") as bar:
-            data = ensure_source_data(source, data_episodes, seed, progress=bar.update)
+
+        def collect():
+            with Bar(planned_episodes(source, data_episodes), f"collect {source}") as bar:
+                return ensure_source_data(source, data_episodes, seed, progress=bar.update)
+
+        data = process_zero_first("run:data", collect)
         typer.echo(f"      {data}")
         typer.echo(f"[2/3] pretrained CDT: preset {preset}")
         # The cache is run's own: a checkpoint of older data (e.g. recollected after a
         # collector change) or of another config is retrained, not an error.
-        ckpt = ensure_checkpoint(data, source, preset, steps, seed=seed, overwrite=True)
+        ckpt = process_zero_first("run:checkpoint", lambda: ensure_checkpoint(
+            data, source, preset, steps, seed=seed, overwrite=True))
         typer.echo(f"      {ckpt}")
         shifted = f", dynamics {dynamics}" if dynamics else ""
         typer.echo(f"[3/3] deployment: {target}{shifted}, {variant}, B={budget}, {seeds} seeds "

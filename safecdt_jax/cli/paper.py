@@ -5,7 +5,15 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import app, enable_persistent_cache, fail
+from safecdt_jax.cli.app import (
+    Coordinator,
+    NumProcesses,
+    ProcessId,
+    app,
+    enable_persistent_cache,
+    fail,
+    join_processes,
+)
 
 
 @app.command()
@@ -26,6 +34,9 @@ def paper(
         help="What the LoRA finetuning windows' tokens read: stage (the mean outcome of the "
              "episodes run under the same targets), target or hindsight (the paper's).")]
         = "stage",
+    coordinator: Coordinator = None,
+    num_processes: NumProcesses = None,
+    process_id: ProcessId = None,
 ) -> None:
     """Tables 1-7, Figure 2 and the safety certificate, ours beside the paper's, in
     OUT/REPORT.md; finished experiments (OUT/experiments/*.json) are reused, so an
@@ -33,6 +44,7 @@ def paper(
     from safecdt_jax.deploy.job import parse_list
     from safecdt_jax.paper import PaperPlan, quick_plan, run_paper
 
+    join_processes(coordinator, num_processes, process_id)
     try:
         pair_list = tuple(parse_list(pairs, str, "pair"))
         study = "CG1-CG2" if "CG1-CG2" in pair_list else pair_list[0]
@@ -45,5 +57,9 @@ def paper(
     enable_persistent_cache()
     folder = out or (Path("runs") / "paper-quick" if quick else Path("report"))
     summary = run_paper(plan, folder, log=typer.echo)
+    from safecdt_jax.distributed import is_writer
+
+    if not is_writer():  # one of several cooperating processes: process 0 wrote the report
+        return
     typer.echo(f"wrote {folder / 'REPORT.md'} ({summary['seconds'] / 60:.1f} min)")
 

@@ -78,15 +78,15 @@ class DeployConfig:
             silent; default False (deterministic forward pass): with 10 steps of 32 sequences per
             episode, dropout noise would dominate the small gradient signal, and the adapters are
             trained for exactly the forward pass the deployment uses (evaluation mode).
-        lora_in_turn: under the sweep's vmap over runs and seeds, compute their adapter
-            gradients one after another (`jax.custom_batching.sequential_vmap`) instead of as
-            one batched product. None (default): on where the sweep runs on one CPU device,
-            off on an accelerator or with the seeds sharded over several devices (resolved by
-            `resolved`). On a CPU each seed's 32 windows keep their activations in cache: the
-            LoRA steps of a 15-seed sweep ran 1.5x (`cpu` preset, 2 threads) and 2.2x (`osrl`,
-            1 thread) faster, the whole sweep 1.19x and 1.46x (docs/PERFORMANCE.md). The
-            adapters agree to float rounding (summation order), but a rollout that follows
-            them can leave the other's path: results made before 2026-12-05 ran batched, and
+        lora_in_turn: under the sweep's vmap over runs and seeds, compute their adapter gradients
+            one after another (`jax.custom_batching.sequential_vmap`) instead of as one batched
+            product. None (default): on where the sweep runs on one CPU device (per process, when
+            several cooperate), off on an accelerator or with a process's seeds sharded over several
+            devices (resolved by `resolved`). On a CPU each seed's 32 windows keep their activations
+            in cache: the LoRA steps of a 15-seed sweep ran 1.5x (`cpu` preset, 2 threads) and 2.2x
+            (`osrl`, 1 thread) faster, the whole sweep 1.19x and 1.46x (docs/PERFORMANCE.md). The
+            adapters agree to float rounding (summation order), but a rollout that follows them can
+            leave the other's path: results made before 2026-12-05 ran batched, and
             `lora_in_turn=False` (`--set lora_in_turn=false`) reproduces them bit for bit.
         lora_micro_batch: compute each LoRA step's gradient in passes of at most this many of
             its `lora_batch` windows, summed (0, the default: one pass, as every published
@@ -170,11 +170,14 @@ class DeployConfig:
 
     def resolved(self, devices: list | None = None) -> DeployConfig:
         """This config with its per-device choices made: `lora_in_turn` None becomes True
-        where `devices` (default: the default backend's) are one CPU device, else False."""
+        where `devices` (default: the default backend's) hold one CPU device of this process
+        (one process alone, or each of several cooperating ones with one CPU device: every
+        process then runs its seeds' LoRA steps on one device, as alone), else False."""
         if self.lora_in_turn is not None:
             return self
         devices = jax.devices() if devices is None else list(devices)
-        one_cpu = len(devices) == 1 and devices[0].platform == "cpu"
+        local = [d for d in devices if d.process_index == jax.process_index()]
+        one_cpu = len(local) == 1 and local[0].platform == "cpu"
         return self.replace(lora_in_turn=one_cpu)
 
 

@@ -107,6 +107,7 @@ def run_deployment(
 
     if seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {seeds}")
+    progress = progress and jax.process_index() == 0  # one bar among cooperating processes
     env, env_params, policy, cfg, r_ref = load_deployment(ckpt, target, cfg, stochastic_actions)
     dynamics = list(dynamics) or [{}]
     pairs = list(itertools.product(variants, budgets)) if runs is None else list(runs)
@@ -182,7 +183,13 @@ def shift_axes(runs: Sequence[dict[str, Any]]) -> dict[str, list[float]]:
 
 def write_results(out_dir: str | os.PathLike, results: dict[str, Any], title: str) -> list[Path]:
     """Write `results.json`, `table.md` and the figures into `out_dir` (each atomically), and
-    each run's per-episode curves as TensorBoard events in `out_dir/tensorboard`."""
+    each run's per-episode curves as TensorBoard events in `out_dir/tensorboard`. Among
+    cooperating processes (`safecdt_jax.distributed`) only process 0 writes; the others write
+    nothing and return []."""
+    from safecdt_jax.distributed import is_writer
+
+    if not is_writer():
+        return []
     from safecdt_jax.envs.dynamics import shift_label
     from safecdt_jax.io import write_text_atomic
     from safecdt_jax.results.figures import plot_deployment, plot_robustness

@@ -3,7 +3,9 @@
 One call deploys every (run, seed) pair: runs are the leading axis of a stacked `DeploySpec`
 (and, optionally, of the env params), seeds the second. With several devices the seed axis is
 sharded over a `('seeds',)` mesh (seeds padded to a multiple of the device count, the padding
-dropped from the result); each seed's result does not depend on how many devices ran it.
+dropped from the result); each seed's result does not depend on how many devices ran it. Under
+several cooperating processes (`safecdt_jax.distributed`) the mesh spans every process's
+devices: each process computes its seeds, and the metrics are gathered to all of them.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from safecdt_jax import programs
+from safecdt_jax import distributed, programs
 from safecdt_jax.deploy.config import DeployConfig
 from safecdt_jax.deploy.loop import (
     Carry,
@@ -90,7 +92,9 @@ def sweep(
             [R] axis (e.g. a sweep over friction scales), else one set for all runs.
         specs: a `DeploySpec` whose leaves have a leading [R] axis (`stack_specs`).
         env, model_cfg, cfg: static; one compilation per distinct triple and shapes.
-        devices: devices to shard the seed axis over (default: all of the default backend's).
+        devices: devices to shard the seed axis over (default: all of the default backend's,
+            every process's when several cooperate; the seeds are then padded to a multiple
+            of the global device count, and every process gets the whole result).
         chunk: episodes per device call (default: all `cfg.episodes` in one call). Every chunk
             runs the same compiled program, so chunking changes nothing but the progress
             reports; it must divide `cfg.episodes`.
@@ -111,16 +115,20 @@ def sweep(
     if pad:  # repeat the last key; the padded seeds are computed and dropped
         keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, axis=0)])
     lora = init_adapters(keys, base_params, model_cfg)
+    # A batch with no LoRA variant (zero-shot, fixed CTG, step changes) gets the program
+    # without LoRA steps: the same bits at the cost of the rollouts alone. Read before the
+    # specs are spread over the processes (a global array cannot be read whole).
+    finetune = bool(np.any(np.asarray(jax.device_get(specs.variant.lora))))
+    spread = distributed.spans_processes(devices)
     if len(devices) > 1:
         mesh = Mesh(np.asarray(devices), ("seeds",))
         seeded = NamedSharding(mesh, PartitionSpec("seeds"))
         replicated = NamedSharding(mesh, PartitionSpec())
-        keys, lora = jax.device_put((keys, lora), seeded)
-        base_params, env_params, specs = jax.device_put((base_params, env_params, specs),
-                                                        replicated)
-    # A batch with no LoRA variant (zero-shot, fixed CTG, step changes) gets the program
-    # without LoRA steps: the same bits at the cost of the rollouts alone.
-    finetune = bool(np.any(np.asarray(jax.device_get(specs.variant.lora))))
+        put = distributed.to_global if spread else jax.device_put
+        keys, lora = put((keys, lora), seeded)
+        base_params, env_params, specs = put((base_params, env_params, specs), replicated)
+    # Across processes each chunk's metrics are gathered whole into every process.
+    whole = distributed.gather if spread else (lambda tree: tree)
     init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched, finetune)
     carry = init_all(keys, lora, specs)
     run_all = stored_episodes(
@@ -131,13 +139,13 @@ def sweep(
     for start in range(0, cfg.episodes, chunk):
         index = jnp.arange(start, start + chunk, dtype=jnp.int32)
         carry, metrics = run_all(carry, index, base_params, env_params, specs)
-        parts.append(jax.tree.map(lambda x: x[:, :n_seeds], metrics))
+        parts.append(jax.tree.map(lambda x: x[:, :n_seeds], whole(metrics)))
         if progress is not None:
             jax.block_until_ready(parts[-1])
             progress(chunk)
     metrics = jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=2), *parts)
     if return_carry:
-        return metrics, jax.tree.map(lambda x: x[:, :n_seeds], carry)
+        return metrics, jax.tree.map(lambda x: x[:, :n_seeds], whole(carry))
     return metrics
 
 

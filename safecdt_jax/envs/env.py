@@ -27,9 +27,12 @@ class SafetyEnv:
     @functools.cached_property
     def model(self) -> mjx.Model:
         """The robot's MJX model (device arrays), built once, concretely even if first asked for
-        inside a trace (a cached tracer would leak into later calls)."""
+        inside a trace (a cached tracer would leak into later calls). Under several
+        cooperating processes it goes on this process's first device: MJX's default is
+        `jax.devices()[0]`, process 0's device in every process."""
+        device = jax.local_devices()[0] if jax.process_count() > 1 else None
         with jax.ensure_compile_time_eval():
-            return mjx.put_model(self.robot.mj_model)
+            return mjx.put_model(self.robot.mj_model, device=device)
 
     @property
     def observation_size(self) -> int:

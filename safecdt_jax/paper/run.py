@@ -4,7 +4,9 @@ that is not already finished, and keep each result in its own file.
 Each experiment writes `OUT/experiments/PAIR_NAME.json` atomically with its spec (what made it:
 counts, runs, task, the checkpoint's identity), its wall time and its results. A rerun loads
 every file whose spec equals the current one and runs only the rest, so an interrupted suite
-continues where it stopped and a changed plan reruns only what it changes.
+continues where it stopped and a changed plan reruns only what it changes. Under N cooperating
+processes (`safecdt_jax.distributed`, on a shared disk) the deployment sweeps shard their seeds
+over every process; process 0 alone prepares checkpoints, trains baselines and writes files.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from safecdt_jax.distributed import is_writer, process_zero_first
 from safecdt_jax.paper.plan import Experiment, PaperPlan, experiments
 
 RECORD_FORMAT = 1
@@ -166,18 +169,20 @@ def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path, folder: Path,
         return record
     log(f"{e.key}: running ({_describe(e)})")
     start = time.perf_counter()
-    if e.kind == "deploy":
+    if e.kind == "deploy":  # a sweep: every cooperating process computes its seeds
         results = _run_deploy(e, spec, plan, ckpt, progress)
-    else:
-        results = _run_baselines(spec, plan, progress)
+    else:  # not sharded: process 0 trains, the others wait and load what it cached
+        results = process_zero_first(f"paper:{e.key}", lambda: _run_baselines(spec, plan,
+                                                                               progress))
         if results is None:
             log(f"{e.key}: no cached baselines with these settings; skipped (train them with "
                 f"the full `paper` or `safecdt-jax baselines`)")
             return None
     record = {"spec": spec, "seconds": time.perf_counter() - start,
               "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "results": results}
-    folder.mkdir(parents=True, exist_ok=True)
-    write_text_atomic(path, json.dumps(record))
+    if is_writer():  # among cooperating processes, process 0 writes
+        folder.mkdir(parents=True, exist_ok=True)
+        write_text_atomic(path, json.dumps(record))
     log(f"{e.key}: done in {record['seconds']:.0f} s")
     return record
 
@@ -208,7 +213,8 @@ def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
             ckpt = Path(checkpoints[pair])
         else:
             log(f"{pair}: source data and pretrained CDT ({plan.preset} preset)")
-            ckpt = prepare_pair(pair, plan, progress)
+            ckpt = process_zero_first(f"paper:prepare:{pair}",
+                                      lambda pair=pair: prepare_pair(pair, plan, progress))
         prepare[pair] = time.perf_counter() - t0
         ckpt_id = checkpoint_identity(ckpt)
         for e in (x for x in experiments(plan) if x.pair == pair):
@@ -217,5 +223,6 @@ def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
                 records[e.key] = record
     summary = {"records": records, "seconds": time.perf_counter() - start,
                "prepare_seconds": prepare}
-    write_report(out, plan, summary)
+    if is_writer():
+        write_report(out, plan, summary)
     return summary

@@ -54,12 +54,23 @@ def _manager(path: str | os.PathLike, *, max_to_keep: int | None = None, read_on
     import orbax.checkpoint as ocp
 
     _quiet_orbax()
+    local = {}
+    if jax.distributed.is_initialized():
+        # Among cooperating processes (`safecdt_jax.distributed`) each reads, and process 0
+        # alone writes, its own copy: orbax's default would make every save and restore wait
+        # for all processes, so process 0 pretraining alone would hang.
+        me = jax.process_index()
+        local = dict(multiprocessing_options=ocp.options.MultiprocessingOptions(
+            primary_host=me, active_processes={me}))
+        if not read_only:  # orbax cannot create the folder for a subset of processes
+            Path(path).mkdir(parents=True, exist_ok=True)
     options = ocp.CheckpointManagerOptions(
         max_to_keep=max_to_keep,
         # Readers open with create=False rather than orbax's read_only, which warns on every use.
-        create=not read_only,
+        create=not (read_only or local),
         # Synchronous: a save is complete (and renamed into place) when `save` returns.
         enable_async_checkpointing=False,
+        **local,
     )
     return ocp.CheckpointManager(Path(path).absolute(), options=options,
                                  item_names=("state", "meta"))
@@ -134,6 +145,12 @@ def restore_state(
     step = _resolve_step(path, step)
     # The structure (and dtypes) come from a shape-only init: nothing is computed.
     target = jax.eval_shape(lambda k: init_train_state(k, cdt_cfg, optim), jax.random.key(0))
+    if jax.distributed.is_initialized():
+        # Without a sharding orbax places each leaf as saved, on process 0's device, which
+        # another cooperating process cannot address: restore onto this process's own.
+        mine = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+        target = jax.tree.map(lambda s: jax.ShapeDtypeStruct(s.shape, s.dtype, sharding=mine),
+                              target)
     with _manager(path, read_only=True) as mngr:
         out = mngr.restore(step, args=ocp.args.Composite(state=ocp.args.StandardRestore(target)))
     return out["state"]

@@ -4,6 +4,12 @@ The data set is put on the device once; every update draws its windows there wit
 `sample_windows`, so the host only touches the state between chunks (progress bar, checkpoints).
 The key of update `i` is `fold_in(run_key, i)`: the result depends on the seed and the update
 index only, never on how the steps were split into chunks or calls, so resuming is bit-exact.
+
+Data parallel (`train(..., devices=...)`): over several devices, of one process or of several
+cooperating ones (`safecdt_jax.distributed`), each update's batch of windows is sharded over a
+`('data',)` mesh while the state and the data set are replicated; the compiler partitions the
+forward and backward passes and reduces the gradient across devices. The same windows are
+drawn as on one device, so the result equals one device's up to float summation order.
 """
 
 from __future__ import annotations
@@ -16,6 +22,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from safecdt_jax.data import (
     Dataset,
@@ -85,13 +92,15 @@ def stream_key(seed: int, name: str) -> jax.Array:
 
 
 def make_update(
-    cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig
+    cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig,
+    batch_sharding: jax.sharding.Sharding | None = None,
 ) -> Callable[[TrainState, jax.Array, TrainData, jax.Array], tuple[TrainState, dict]]:
     """One pretraining update `(state, key, data, weights) -> (state, aux)` (pure, not jitted).
 
     Draws `cfg.batch_size` windows of `cdt_cfg.seq_len` steps with update key
     `fold_in(key, state.step)`, then takes `make_train_step`'s AdamW + temperature step (its
-    gradient in passes of `cfg.micro_batch` windows when that is set).
+    gradient in passes of `cfg.micro_batch` windows when that is set). With `batch_sharding`
+    the windows are laid out by it (their leading, batch axis split over devices).
     """
     train_step = make_train_step(cdt_cfg, optim, cfg.micro_batch)
 
@@ -102,13 +111,16 @@ def make_update(
             reward_scale=cdt_cfg.reward_scale, cost_scale=cdt_cfg.cost_scale,
             constant=cdt_cfg.constant_targets,
         )
+        if batch_sharding is not None:
+            windows = jax.lax.with_sharding_constraint(windows, batch_sharding)
         return train_step(state, windows._asdict(), k_dropout)
 
     return update
 
 
 def make_train_chunk(
-    cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, donate: bool = False
+    cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, donate: bool = False,
+    mesh: jax.sharding.Mesh | None = None,
 ) -> Callable[..., tuple[TrainState, dict]]:
     """Jitted `train_chunk(state, key, data, weights, stop) -> (state, metrics)`.
 
@@ -119,15 +131,23 @@ def make_train_chunk(
     `donate=True` lets XLA reuse the input state's buffers (the caller must not reuse it).
     Cached: only the fields that shape the program (batch size, chunk, scales) key the cache,
     so runs differing in seed or length share one compile.
+    With a `('data',)` `mesh` (several devices) every input and output is replicated over it
+    and each update's batch sharded along it (`make_update`); `cfg.batch_size` must be a
+    multiple of its size.
     """
+    if mesh is not None and cfg.batch_size % mesh.size:
+        raise ValueError(f"data-parallel pretraining needs the batch size ({cfg.batch_size}) to "
+                         f"be a multiple of the device count ({mesh.size})")
     program = cfg.replace(steps=1, seed=0, c0=1.0, relabel=False, relabel_percent=0.2,
                           labels="episode", checkpoint_every=0, max_to_keep=1)
-    return _train_chunk(cdt_cfg, optim, program, donate)
+    return _train_chunk(cdt_cfg, optim, program, donate, mesh)
 
 
 @functools.lru_cache(maxsize=8)
-def _train_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, donate: bool):
-    update = make_update(cdt_cfg, optim, cfg)
+def _train_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, donate: bool,
+                 mesh: jax.sharding.Mesh | None = None):
+    batch = None if mesh is None else NamedSharding(mesh, PartitionSpec("data"))
+    update = make_update(cdt_cfg, optim, cfg, batch)
 
     def train_chunk(state, key, data, weights, stop):
         aux_shape = jax.eval_shape(update, state, key, data, weights)[1]
@@ -147,7 +167,14 @@ def _train_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, do
         metrics = {k: (v * weight).sum() for k, v in aux.items()}
         return state, {**metrics, "updates": done}
 
-    return jax.jit(train_chunk, donate_argnums=(0,) if donate else ())
+    donate_argnums = (0,) if donate else ()
+    if mesh is None:
+        return jax.jit(train_chunk, donate_argnums=donate_argnums)
+    # Replicated in and out: the compiler all-reduces the gradient of the sharded batch, and
+    # every device (every process) ends each chunk with the same state.
+    replicated = NamedSharding(mesh, PartitionSpec())
+    return jax.jit(train_chunk, donate_argnums=donate_argnums, in_shardings=replicated,
+                   out_shardings=replicated)
 
 
 class History(NamedTuple):
@@ -184,6 +211,7 @@ def train(
     history: History | None = None,
     on_chunk: Callable[[TrainState, History], None] | None = None,
     progress: bool = True,
+    devices: list | None = None,
 ) -> tuple[TrainState, History]:
     """Run updates from `state.step` up to `cfg.steps`, chunk by chunk.
 
@@ -195,17 +223,32 @@ def train(
         on_chunk: called after every chunk with the new state and history (checkpointing).
         progress: show a tqdm bar over updates: updates/s, the chunk's mean loss and action
             log-likelihood (nats per action dimension).
+        devices: train data-parallel over these devices (e.g. `jax.devices()`: all of them,
+            every cooperating process's); None or one device: the single-device program. The
+            batch size must be a multiple of their number.
 
-    Returns the final state and the history (wall seconds summed over calls).
+    Returns the final state (replicated over `devices`, when several) and the history (wall
+    seconds summed over calls).
     """
     from tqdm import tqdm
 
-    chunk_fn = make_train_chunk(cdt_cfg, optim, cfg, donate=True)
+    from safecdt_jax import distributed
+
+    mesh = None
+    if devices is not None and len(devices) > 1:
+        mesh = Mesh(np.asarray(devices), ("data",))
+    chunk_fn = make_train_chunk(cdt_cfg, optim, cfg, donate=True, mesh=mesh)
     history = history or History.empty()
     key, stop = run_key(cfg.seed), jnp.asarray(cfg.steps, jnp.int32)
     step = int(state.step)
-    # The donated input must not be the caller's object: copy once, then chain chunk outputs.
-    state = jax.tree.map(jnp.copy, state)
+    if mesh is None:
+        # The donated input must not be the caller's object: copy once, then chain outputs.
+        state = jax.tree.map(jnp.copy, state)
+    else:  # fresh replicated copies (on every process's devices when several cooperate)
+        replicated = NamedSharding(mesh, PartitionSpec())
+        put = (distributed.to_global if distributed.spans_processes(devices)
+               else jax.device_put)
+        state, data, weights, key, stop = put((state, data, weights, key, stop), replicated)
     wall = history.wall_s
     bar = tqdm(total=cfg.steps, initial=step, unit="step", disable=not progress,
                desc="pretrain", dynamic_ncols=True)

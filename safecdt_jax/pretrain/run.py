@@ -20,6 +20,7 @@ from safecdt_jax.data import (
     returns_to_go,
     trajectory_weights,
 )
+from safecdt_jax.distributed import barrier, is_writer, local_copy, spans_processes
 from safecdt_jax.model import (
     CDTConfig,
     OptimConfig,
@@ -204,19 +205,23 @@ def pretrain(
     resume: bool = False,
     overwrite: bool = False,
     progress: bool = True,
+    devices: list | None = None,
 ) -> PretrainResult:
     """Pretrain a CDT preset on a DSRL-format file, checkpointing into folder `out`.
 
-    See `plan` for how the task, sizes and defaults are chosen, and `train_run` for `resume` and
-    `overwrite`. Returns `PretrainResult(path, state, history, meta)`.
+    See `plan` for how the task, sizes and defaults are chosen, and `train_run` for `resume`,
+    `overwrite` and `devices` (data-parallel). Returns `PretrainResult(path, state, history,
+    meta)`.
     """
     spec = plan(data_path, out, preset=preset, config=config, optim=optim, task=task,
                 model_overrides=model_overrides)
-    return train_run(spec, resume=resume, overwrite=overwrite, progress=progress)
+    return train_run(spec, resume=resume, overwrite=overwrite, progress=progress,
+                     devices=devices)
 
 
 def train_run(
-    spec: RunSpec, *, resume: bool = False, overwrite: bool = False, progress: bool = True
+    spec: RunSpec, *, resume: bool = False, overwrite: bool = False, progress: bool = True,
+    devices: list | None = None,
 ) -> PretrainResult:
     """Train the run `spec` (from `plan`), checkpointing into `spec.out`.
 
@@ -229,12 +234,22 @@ def train_run(
     configs or data differ raises CheckpointError naming the fields. Without `resume`, a folder
     that already holds checkpoints raises CheckpointError unless `overwrite` (which deletes them
     first). Checkpoints are written every `checkpoint_every` updates and at the end.
+    `devices` (several): train data-parallel over them (`loop.train`), the same up to float
+    summation order; with several cooperating processes every process trains its share of
+    each batch and process 0 alone writes the checkpoints.
     Returns `PretrainResult(path, state, history, meta)`; `meta` is the last saved metadata.
     """
     out, cfg = spec.out, spec.cfg
+    # Training together with other processes (devices of several): process 0 writes, and they
+    # meet at barriers. Otherwise (alone, or process 0 preparing alone) this process writes.
+    together = devices is not None and spans_processes(devices)
+    writer = is_writer() or not together
     existing = checkpoint_steps(out)
     if existing and overwrite:
-        shutil.rmtree(out)
+        if writer:
+            shutil.rmtree(out)
+        if together:
+            barrier("pretrain:overwrite")  # no process reads the folder while it is deleted
         existing = []
     if existing and not resume:
         raise CheckpointError(f"{out} already holds a checkpoint (step {existing[-1]}); "
@@ -267,9 +282,10 @@ def train_run(
         record = {**spec.meta, "dataset": dataset, "step": step, "finished": step >= cfg.steps,
                   "history": history.to_json(), "wall_time_s": history.wall_s,
                   "setup_s": setup_s, "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        save_checkpoint(out, state, record, max_to_keep=cfg.max_to_keep)
-        curves = {f"pretrain/{k}": v for k, v in history.metrics.items()}
-        write_scalars(tensorboard_dir(out), curves, history.step, start=last["curves"])
+        if writer:  # one writer among cooperating processes, of its own copy
+            save_checkpoint(out, local_copy(state), record, max_to_keep=cfg.max_to_keep)
+            curves = {f"pretrain/{k}": v for k, v in history.metrics.items()}
+            write_scalars(tensorboard_dir(out), curves, history.step, start=last["curves"])
         last.update(step=step, meta=record, curves=len(history.step))
 
     def on_chunk(state: TrainState, history: History) -> None:
@@ -279,9 +295,12 @@ def train_run(
             save(state, history)
 
     state, history = train(state, data, weights, spec.cdt_cfg, spec.optim, cfg,
-                           history=history, on_chunk=on_chunk, progress=progress)
+                           history=history, on_chunk=on_chunk,
+                           progress=progress and writer, devices=devices)
     if int(state.step) != last["step"]:  # trained since the last save (always, unless resumed
         save(state, history)               # a run that had already reached its steps)
+    if together:
+        barrier("pretrain:saved")  # the checkpoint is complete before any process reads it
     meta = last["meta"] if last["meta"] is not None else read_meta(out)
     return PretrainResult(out, state, history, meta)
 

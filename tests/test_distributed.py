@@ -1,0 +1,108 @@
+"""Several cooperating processes: settings, bad input, and a 2-process deployment that equals
+one process's, written once."""
+
+import json
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from safecdt_jax.distributed import Cluster, cluster_from
+
+ROOT = Path(__file__).resolve().parents[1]
+# 8 seeds x 3 episodes of 20 steps, LoRA after every episode, the scheduler every episode.
+SETTINGS = dict(horizon=20, lora_steps=2, lora_batch=4, window=2, stage_len=1, lambda_warmup=1,
+                lora_in_turn=True)
+
+
+def test_settings_come_from_flags_then_environment():
+    env = {"JAX_COORDINATOR_ADDRESS": "10.0.0.1:1234", "JAX_NUM_PROCESSES": "4",
+           "JAX_PROCESS_ID": "3"}
+    assert cluster_from(environ=env) == Cluster("10.0.0.1:1234", 4, 3)
+    assert cluster_from(process_id=1, environ=env) == Cluster("10.0.0.1:1234", 4, 1)
+    assert cluster_from(environ={}) == Cluster(None, 1, 0)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    (dict(coordinator="h:1", num_processes=2, process_id=2), "process id 2 out of range"),
+    (dict(coordinator="h:1", num_processes=2), "need this process's id"),
+    (dict(num_processes=2, process_id=0), "need a coordinator address"),
+    (dict(coordinator="nohostport", num_processes=2, process_id=0), "HOST:PORT"),
+    (dict(process_id=1), "without the number of processes"),
+])
+def test_bad_settings_are_one_clear_error(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        cluster_from(**kwargs, environ={})
+
+
+def test_the_cli_reports_a_process_id_out_of_range_in_one_line(tiny_run):
+    from safecdt_jax.cli import app
+
+    _, ckpt, _ = tiny_run
+    result = CliRunner().invoke(app, ["deploy", "--ckpt", str(ckpt), "--pair", "PC1-PC2",
+                                      "--coordinator", "127.0.0.1:1", "--num-processes", "2",
+                                      "--process-id", "5"])
+    assert result.exit_code == 1
+    assert result.output.strip().splitlines() == [
+        "error: process id 5 out of range for 2 process(es): it must be in 0..1"]
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _deploy_command(ckpt, out) -> list[str]:
+    sets = [arg for k, v in SETTINGS.items() for arg in ("--set", f"{k}={v}")]
+    return [sys.executable, "-c", "from safecdt_jax.cli import main; main()", "deploy",
+            "--ckpt", str(ckpt), "--pair", "PC1-PC2", "--variant", "safe_cdt", "--budget", "5",
+            "--seeds", "8", "--episodes", "3", "--out", str(out), *sets]
+
+
+@pytest.mark.slow
+def test_two_processes_deploy_like_one_and_only_process_0_writes(tiny_run, tmp_path):
+    from safecdt_jax.deploy import DeployConfig
+    from safecdt_jax.deploy.job import run_deployment
+
+    _, ckpt, _ = tiny_run
+    address = f"127.0.0.1:{_free_port()}"
+    base = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # one CPU device each
+    base.update(JAX_PLATFORMS="cpu", SAFECDT_CACHE=str(tmp_path / "cache"))
+    # Process 0 is told by flags, process 1 by JAX's environment variables.
+    pipes = dict(cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    procs = [
+        subprocess.Popen([*_deploy_command(ckpt, tmp_path / "out0"), "--coordinator", address,
+                          "--num-processes", "2", "--process-id", "0"], env=base, **pipes),
+        subprocess.Popen(_deploy_command(ckpt, tmp_path / "out1"), env=dict(
+            base, JAX_COORDINATOR_ADDRESS=address, JAX_NUM_PROCESSES="2", JAX_PROCESS_ID="1"),
+            **pipes),
+    ]
+    try:
+        logs = [p.communicate(timeout=240)[0] for p in procs]
+    finally:  # a hung peer must not outlive the test
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    for rank, (p, log) in enumerate(zip(procs, logs, strict=True)):
+        assert p.returncode == 0, f"process {rank}:\n{log[-3000:]}"
+    assert "process 1: done; process 0 writes" in logs[1]
+    assert not (tmp_path / "out1").exists()  # process 1 wrote nothing
+    gathered = json.loads((tmp_path / "out0" / "results.json").read_text())
+
+    # The same sweep in this one process (one device): each seed's program is the same, so
+    # its metrics are the same bits (lora_in_turn fixed: it is resolved per process).
+    alone = run_deployment(ckpt, "PointCircle2", ["safe_cdt"], [5.0], 8, progress=False,
+                           cfg=DeployConfig(episodes=3, **SETTINGS))
+    assert gathered["seeds"] == 8
+    for name, values in alone["runs"][0]["metrics"].items():
+        got = np.asarray(gathered["runs"][0]["metrics"][name])
+        assert got.shape == (8, 3), name
+        np.testing.assert_array_equal(got, np.asarray(values), err_msg=name)
+    assert np.ptp(np.asarray(alone["runs"][0]["metrics"]["return"])) > 0  # seeds differ

@@ -1,0 +1,94 @@
+"""Data-parallel pretraining: the batch sharded over 2 (forced CPU) devices equals 1 device."""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from data_helpers import expert_episodes
+
+from safecdt_jax.model import CDTConfig, OptimConfig, init_train_state
+from safecdt_jax.pretrain import default_pretrain
+from safecdt_jax.pretrain.loop import make_train_chunk, prepare_data, stream_key, train
+
+ROOT = Path(__file__).resolve().parents[1]
+# 50 updates of 8 windows, in one process with `sys.argv[1]` devices listed ("all" or the
+# default single-device program); prints the params, the curve and facts about the program.
+_RUN = textwrap.dedent("""
+    import json, sys
+    import jax, numpy as np
+    from data_helpers import expert_episodes
+    from safecdt_jax.model import CDTConfig, OptimConfig, init_train_state
+    from safecdt_jax.pretrain import default_pretrain
+    from safecdt_jax.pretrain.loop import make_train_chunk, prepare_data, stream_key, train
+
+    data = expert_episodes()
+    cfg = default_pretrain("tiny", steps=50, chunk=25, batch_size=8)
+    model = CDTConfig.preset("tiny", data.observations.shape[-1], data.actions.shape[-1], 20)
+    optim = OptimConfig()
+    arrays, weights, _ = prepare_data(data, cfg)
+    state = init_train_state(stream_key(0, "init"), model, optim)
+    devices = jax.devices() if sys.argv[1] == "all" else None
+    state, history = train(state, arrays, weights, model, optim, cfg, progress=False,
+                           devices=devices)
+    mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("data",))
+    chunk = make_train_chunk(model, optim, cfg, mesh=mesh)
+    hlo = chunk.lower(state, jax.random.key(0), arrays, weights, 50).compile().as_text()
+    try:
+        make_train_chunk(model, optim, cfg.replace(batch_size=7), mesh=mesh)
+        odd = ""
+    except ValueError as e:
+        odd = str(e)
+    print(json.dumps({"devices": len(state.step.sharding.device_set),
+                      "params": [np.asarray(x).tolist() for x in jax.tree.leaves(state.params)],
+                      "loss": history.metrics["loss"], "all_reduce": "all-reduce" in hlo,
+                      "odd_batch": odd}))
+""")
+
+
+def _train(devices: int, which: str) -> dict:
+    env = dict(os.environ, XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}",
+               JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT / "tests"))
+    proc = subprocess.run([sys.executable, "-c", _RUN, which], capture_output=True, text=True,
+                          env=env, cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _tiny():
+    data = expert_episodes()
+    model = CDTConfig.preset("tiny", data.observations.shape[-1], data.actions.shape[-1], 20)
+    return data, model, init_train_state(stream_key(0, "init"), model, OptimConfig())
+
+
+@pytest.mark.slow
+def test_two_devices_train_like_one_up_to_summation_order():
+    two = _train(2, "all")
+    assert two["devices"] == 2 and two["all_reduce"]  # sharded batch, gradient all-reduced
+    assert "multiple of the device count (2)" in two["odd_batch"]
+    one = _train(1, "default")
+    assert one["devices"] == 1
+    # The same windows and dropout draws; only the order of the gradient sums differs.
+    np.testing.assert_allclose(two["loss"], one["loss"], rtol=1e-5)
+    for a, b in zip(two["params"], one["params"], strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+    initial = jax.tree.leaves(_tiny()[2].params)
+    assert not all(np.array_equal(np.asarray(a), np.asarray(b))  # it did train
+                   for a, b in zip(one["params"], initial, strict=True))
+
+
+def test_one_listed_device_is_the_default_program_bit_for_bit():
+    data, model, state = _tiny()
+    cfg = default_pretrain("tiny", steps=4, chunk=2, batch_size=4)
+    arrays, weights, _ = prepare_data(data, cfg)
+    runs = [train(state, arrays, weights, model, OptimConfig(), cfg, progress=False,
+                  devices=devices)[0] for devices in (None, jax.devices()[:1])]
+    for a, b in zip(*(jax.tree.leaves(r.params) for r in runs), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert make_train_chunk(model, OptimConfig(), cfg) is make_train_chunk(
+        model, OptimConfig(), cfg, mesh=None)
