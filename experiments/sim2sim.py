@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import hashlib
 import json
 import subprocess
 import tempfile
@@ -40,6 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json
+from safecdt_jax.io import atomic_path
 from safecdt_jax.stats import ratio_interval
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,16 +54,39 @@ SENSOR_NAMES = {
     + [f"ballquat_{i}{j}" for i in range(3) for j in range(3)],
 }
 LIMIT = {"Goal": 25.0, "Circle": 20.0}
-PARTS = ("sensors", "script", "turning", "contacts", "shifts", "transfer")
+TERMS = ("cost_hazards", "cost_vases_contact", "cost_vases_velocity", "cost_out_of_boundary")
+PARTS = ("sensors", "script", "turning", "contacts", "shifts", "layouts", "transfer")
 
 
 def native(request: dict) -> dict[str, np.ndarray]:
-    """Runs one request of `benchmarks/peers/native.py` in the peer venv; its arrays."""
+    """Runs one request of `benchmarks/peers/native.py` in the peer venv; its arrays.
+
+    Results are cached under `.peers/cache/`, keyed by the request, the contents of its
+    `weights` file and native.py itself (the native side is deterministic given its seed, and
+    a 128-episode CarGoal2 run takes minutes)."""
+    from benchmarks.peers.setup import ROOT as PEERS
     from benchmarks.peers.setup import venv_python
 
     python = venv_python("safety-gymnasium")
     if not python.exists():
         raise SystemExit("no peer venv: run `python -m benchmarks.peers.setup` first")
+    key = {k: v for k, v in request.items() if k != "weights"}  # its path is a temp folder
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode() + NATIVE.read_bytes())
+    if request.get("weights"):
+        digest.update(Path(request["weights"]).read_bytes())
+    cached = PEERS / "cache" / f"{request['cmd']}-{digest.hexdigest()[:20]}.npz"
+    if cached.exists():
+        with np.load(cached) as z:
+            return dict(z)
+    out = _run_native(python, request)
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(cached) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez(f, **out)
+    return out
+
+
+def _run_native(python: Path, request: dict) -> dict[str, np.ndarray]:
     with tempfile.TemporaryDirectory() as tmp:
         req, out = Path(tmp) / "request.json", Path(tmp) / "out.npz"
         req.write_text(json.dumps(request))
@@ -309,24 +334,34 @@ def export_policy(snapshot_file: Path, index: int, path: Path) -> dict:
     return meta["snapshots"][index]
 
 
-def pick_expert(task: str) -> int:
-    """Index of the last snapshot of the task's cost-limit-`LIMIT` run."""
+def pick_expert(task: str, limit: float | None = None) -> int:
+    """Index of the last snapshot of the task's cost-limit-`limit` run (default `LIMIT`)."""
     from safecdt_jax.experts.collect import snapshot_path
     from safecdt_jax.experts.export import load_snapshots
 
     meta = load_snapshots(snapshot_path(task))[1]
-    limit = LIMIT["Goal" if "Goal" in task else "Circle"]
+    limit = LIMIT["Goal" if "Goal" in task else "Circle"] if limit is None else limit
     mine = [i for i, s in enumerate(meta["snapshots"]) if s["schedule"][0] == limit]
+    if not mine:
+        limits = sorted({s["schedule"][0] for s in meta["snapshots"]})
+        raise SystemExit(f"{task} has no expert of cost limit {limit:g}; it has {limits}")
     return max(mine, key=lambda i: meta["snapshots"][i]["round"])
 
 
+def target_task(task: str) -> str:
+    """The deployment target of a source task: the same robot and task at level 2."""
+    return task[:-1] + "2"
+
+
 def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed: int,
-                deterministic: bool) -> dict[str, np.ndarray]:
-    """Per-episode return, cost and goals of one snapshot in our env."""
+                deterministic: bool, run_in: str | None = None) -> dict[str, np.ndarray]:
+    """Per-episode return, cost, goals and cost steps per term (`TERMS`, absent terms 0) of one
+    snapshot of `task`'s experts, run in task `run_in` (default `task`)."""
     import jax
+    import jax.numpy as jnp
 
     from safecdt_jax import envs
-    from safecdt_jax.envs.rollout import run_episode
+    from safecdt_jax.envs.rollout import scan_episode
     from safecdt_jax.experts.config import ExpertConfig
     from safecdt_jax.experts.export import load_snapshots
     from safecdt_jax.experts.networks import action_dist
@@ -334,46 +369,163 @@ def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed:
     snaps, meta = load_snapshots(snapshot_file)
     cfg = ExpertConfig.from_json(meta["expert"])
     one = jax.tree.map(lambda x: x[index], snaps)
-    env, params = envs.make(task)
+    env, params = envs.make(run_in or task)
+    zero = jnp.float32(0.0)
 
     def policy(key, state):
         z = one["norm"].apply(state.obs, cfg.obs_var_floor, cfg.obs_clip)
         mean, std = action_dist(one["actor"], z, cfg.hidden, cfg.min_std)
         return mean if deterministic else mean + std * jax.random.normal(key, mean.shape)
 
+    def record(s):
+        terms = jnp.stack([(s.info.get(k, zero) > 0).astype(jnp.float32) for k in TERMS])
+        return s.reward, s.cost, s.info["goal_met"], terms
+
+    def episode(key):
+        _, (r, c, g, terms) = scan_episode(env, params, key, policy, record)
+        return {"return": r.sum(), "cost": c.sum(), "goals": g.sum(),
+                **{k: terms[:, i].sum() for i, k in enumerate(TERMS)}}
+
     keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-    out = jax.jit(jax.vmap(lambda k: run_episode(env, params, k, policy)))(keys)
-    return {k: np.asarray(out[k]) for k in ("return", "cost", "goals")}
+    return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(episode))(keys).items()}
 
 
-def transfer(task: str, episodes: int) -> list[dict]:
-    """The task's limit-25 (Circle: 20) expert in both simulators, deterministic and stochastic."""
+def transfer(task: str, episodes: int, limits: list[float] | None = None,
+             targets: bool = True) -> list[dict]:
+    """The task's experts (last snapshot per cost limit; default `LIMIT`) in both simulators,
+    deterministic and stochastic, in the source task and (`targets`) its level-2 target: mean
+    and median return, cost and goals, ratios theirs / ours with 95% bootstrap intervals, and
+    per cost term the mean number of cost steps on each side."""
     from safecdt_jax.experts.collect import snapshot_path
 
-    index = pick_expert(task)
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        weights = Path(tmp) / "policy.npz"
-        info = export_policy(snapshot_path(task), index, weights)
-        for det in (True, False):
-            o = ours_policy(task, snapshot_path(task), index, episodes, 0, det)
-            t = native({"cmd": "policy", "task": task, "weights": str(weights),
-                        "episodes": episodes, "seed": 0, "deterministic": det})
-            row = {"task": task, "snapshot": index, "limit": info["schedule"][0],
-                   "round": info["round"], "deterministic": det, "episodes": episodes}
-            for k in ("return", "cost", "goals"):
-                row[f"ours_{k}"], row[f"theirs_{k}"] = float(o[k].mean()), float(t[k].mean())
-            row["ours_median_cost"] = float(np.median(o["cost"]))
-            row["theirs_median_cost"] = float(np.median(t["cost"]))
-            row["return_ratio"] = row["theirs_return"] / row["ours_return"]
-            row["cost_ratio"] = row["theirs_cost"] / max(row["ours_cost"], 1e-9)
-            row["return_ratio_ci"] = ratio_interval(t["return"], o["return"])
-            row["cost_ratio_ci"] = ratio_interval(t["cost"], o["cost"])
-            for k in ("return", "cost"):  # kept so that the intervals can be recomputed
-                row[f"ours_{k}s"] = [round(float(x), 4) for x in o[k]]
-                row[f"theirs_{k}s"] = [round(float(x), 4) for x in t[k]]
-            rows.append(row)
+    for limit in limits or [None]:
+        index = pick_expert(task, limit)
+        with tempfile.TemporaryDirectory() as tmp:
+            weights = Path(tmp) / "policy.npz"
+            info = export_policy(snapshot_path(task), index, weights)
+            for run_in in (task, target_task(task)) if targets else (task,):
+                for det in (True, False):
+                    o = ours_policy(task, snapshot_path(task), index, episodes, 0, det, run_in)
+                    t = native({"cmd": "policy", "task": run_in, "weights": str(weights),
+                                "episodes": episodes, "seed": 0, "deterministic": det})
+                    rows.append(_transfer_row(task, run_in, index, info, det, episodes, o, t))
     return rows
+
+
+def _transfer_row(task, run_in, index, info, det, episodes, o, t) -> dict:
+    row = {"task": task, "run_in": run_in, "snapshot": index, "limit": info["schedule"][0],
+           "round": info["round"], "deterministic": det, "episodes": episodes}
+    for k in ("return", "cost", "goals"):
+        row[f"ours_{k}"], row[f"theirs_{k}"] = float(o[k].mean()), float(t[k].mean())
+    row["ours_median_cost"] = float(np.median(o["cost"]))
+    row["theirs_median_cost"] = float(np.median(t["cost"]))
+    row["return_ratio"] = row["theirs_return"] / row["ours_return"]
+    row["cost_ratio"] = row["theirs_cost"] / max(row["ours_cost"], 1e-9)
+    row["return_ratio_ci"] = ratio_interval(t["return"], o["return"])
+    row["cost_ratio_ci"] = ratio_interval(t["cost"], o["cost"])
+    row["terms"] = {}
+    for k in TERMS:
+        if o[k].any() or t[k].any():
+            row["terms"][k] = {"ours": float(o[k].mean()), "theirs": float(t[k].mean()),
+                               "ratio_ci": ratio_interval(t[k], o[k])}
+    for k in ("return", "cost"):  # kept so that the intervals can be recomputed
+        row[f"ours_{k}s"] = [round(float(x), 4) for x in o[k]]
+        row[f"theirs_{k}s"] = [round(float(x), 4) for x in t[k]]
+    return row
+
+
+def in_band(row: dict) -> bool:
+    """Issue 48's agreement test for a transfer row: mean cost ratio within 0.7-1.43 with a 95%
+    interval containing 1, the median cost ratio in the same band (or both medians 0), and the
+    return ratio within 0.8-1.25."""
+    lo, hi = row.get("cost_ratio_ci") or (0.0, np.inf)
+    mo, mt = row["ours_median_cost"], row["theirs_median_cost"]
+    cost_ok = 0.7 <= row["cost_ratio"] <= 1.43 and lo <= 1.0 <= hi
+    if row["ours_cost"] == 0 and row["theirs_cost"] == 0:
+        cost_ok = True
+    median_ok = (mo == mt == 0) or (mo > 0 and 0.7 <= mt / mo <= 1.43)
+    return bool(cost_ok and median_ok and 0.8 <= row["return_ratio"] <= 1.25)
+
+
+def ours_layouts(task: str, episodes: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Our positions after `episodes` resets, as native.py's `layouts` returns them (agent and
+    goal [E, 2], the task's active hazards and vases [E, n, 2], m)."""
+    import jax
+
+    from safecdt_jax import envs
+
+    env, params = envs.make(task)
+    states = jax.jit(jax.vmap(lambda k: env.reset(k, params)))(
+        jax.random.split(jax.random.PRNGKey(seed), episodes))
+    task_state = {k: np.asarray(v) for k, v in states.task.items()}
+    out = {"agent": np.asarray(states.data.qpos[:, :2]),
+           "goal": task_state.get("goal", np.zeros((episodes, 2)))}
+    for name, mask in (("hazards", params.hazard_mask), ("vases", params.vase_mask)):
+        active = np.asarray(mask) > 0 if name in task_state else np.zeros(0, bool)
+        out[name] = task_state[name][:, active] if name in task_state else np.zeros(
+            (episodes, 0, 2))
+    return out
+
+
+def layout_stats(pos: dict[str, np.ndarray], keepouts: dict[str, float]) -> dict[str, float]:
+    """Summary statistics of reset layouts (m): the agent's mean |x|, |y| and largest |x|, |y|;
+    the mean agent-goal distance; the mean distance from the agent to its nearest hazard and
+    vase; and the smallest keepout slack (distance minus both keepouts) over all pairs of
+    placed objects (negative: a keepout was violated)."""
+    agent, goal = pos["agent"], pos["goal"]
+    stats = {"agent |x| mean": np.abs(agent[:, 0]).mean(), "agent |y| mean":
+             np.abs(agent[:, 1]).mean(), "agent |x|,|y| max": np.abs(agent).max()}
+    if pos["hazards"].shape[1] or pos["vases"].shape[1]:
+        stats["agent-goal distance"] = np.linalg.norm(agent - goal, axis=-1).mean()
+    for name in ("hazards", "vases"):
+        if pos[name].shape[1]:
+            d = np.linalg.norm(pos[name] - agent[:, None], axis=-1)
+            stats[f"agent-nearest {name[:-1]}"] = d.min(1).mean()
+    objects = [("agent", agent[:, None])] + [
+        (n, pos[n]) for n in ("hazards", "vases") if pos[n].shape[1]]
+    if len(objects) > 1:
+        xy = np.concatenate([o for _, o in objects], 1)
+        k = np.concatenate([np.full(o.shape[1], keepouts[n]) for n, o in objects])
+        d = np.linalg.norm(xy[:, :, None] - xy[:, None], axis=-1) - k[:, None] - k[None]
+        d[:, np.arange(len(k)), np.arange(len(k))] = np.inf
+        stats["smallest keepout slack"] = d.min()
+    return {k: float(v) for k, v in stats.items()}
+
+
+def layout_table(task: str, episodes: int = 256) -> dict:
+    """Our layouts against Safety-Gymnasium's: placement constants and `layout_stats` of
+    `episodes` resets on each side."""
+    from safecdt_jax import envs
+    from safecdt_jax.envs import goal as goal_task
+
+    theirs = native({"cmd": "layouts", "task": task, "episodes": episodes, "seed": 0})
+    ours = ours_layouts(task, episodes)
+    env, params = envs.make(task)
+    robot = env.robot
+    if "Circle" in task:
+        from safecdt_jax.envs.circle import START_HALF_WIDTH
+        constants = {"start half-width": (START_HALF_WIDTH,
+                                          float(theirs["agent_placements"][0, 2]))}
+    else:
+        constants = {"extent": (float(params.extent), float(theirs["extents"][2])),
+                     "agent keepout": (robot.keepout, float(theirs["agent_keepout"])),
+                     "hazards": (int(np.sum(params.hazard_mask)),
+                                 int(theirs["hazards_num"])),
+                     "hazard radius": (goal_task.HAZARD_RADIUS, float(theirs["hazards_size"])),
+                     "hazard keepout": (goal_task.HAZARD_KEEPOUT,
+                                        float(theirs["hazards_keepout"])),
+                     "vases": (int(np.sum(params.vase_mask)), int(theirs["vases_num"])),
+                     "vase half-size": (goal_task.VASE_RADIUS, float(theirs["vases_size"])),
+                     "vase keepout": (goal_task.VASE_KEEPOUT,
+                                      float(theirs["vases_keepout"])),
+                     "goal radius": (goal_task.GOAL_RADIUS, float(theirs["goal_size"])),
+                     "goal keepout": (goal_task.GOAL_KEEPOUT,
+                                      float(theirs["goal_keepout"]))}
+    keepouts = {"agent": robot.keepout, "hazards": goal_task.HAZARD_KEEPOUT,
+                "vases": goal_task.VASE_KEEPOUT}
+    return {"episodes": episodes, "constants": constants,
+            "ours": layout_stats(ours, keepouts), "theirs": layout_stats(theirs, keepouts)}
 
 
 def _with_ci(ratio: float, ci) -> str:
@@ -417,20 +569,39 @@ def report(results: dict) -> str:
             [[r["shift"], f"{r['ours_top']:.3f} / {r['theirs_top']:.3f}",
               f"{r['ours_early']:.3f} / {r['theirs_early']:.3f}",
               f"{r['ours_yaw']:.3f} / {r['theirs_yaw']:.3f}"] for r in rows]), ""]
+    for task, lay in results.get("layouts", {}).items():
+        rows = [[k, f"{a:g} / {b:g}"] for k, (a, b) in lay["constants"].items()]
+        rows += [[k, f"{lay['ours'][k]:.3f} / {lay['theirs'][k]:.3f}"] for k in lay["ours"]]
+        out += [f"### {task}: layouts ({lay['episodes']} resets each side)", "",
+                markdown_table(["quantity", "ours / theirs"], rows), ""]
     if results.get("transfer"):
+        rows = results["transfer"]
         out += ["### Expert transfer, ours -> Safety-Gymnasium", "", markdown_table(
-            ["task", "limit", "episodes", "policy", "return ours", "return theirs",
-             "ratio (95% CI)", "cost ours", "cost theirs", "cost ratio (95% CI)",
-             "median cost ours", "median cost theirs", "goals ours", "goals theirs"],
-            [[r["task"], f"{r['limit']:g}", r["episodes"], "deterministic" if r["deterministic"]
-              else "stochastic", f"{r['ours_return']:.1f}", f"{r['theirs_return']:.1f}",
+            ["expert", "limit", "run in", "episodes", "policy", "return ours / theirs",
+             "ratio (95% CI)", "cost ours / theirs", "cost ratio (95% CI)",
+             "median cost ours / theirs", "goals ours / theirs", "in band"],
+            [[r["task"], f"{r['limit']:g}", r.get("run_in", r["task"]), r["episodes"],
+              "deterministic" if r["deterministic"] else "stochastic",
+              f"{r['ours_return']:.1f} / {r['theirs_return']:.1f}",
               _with_ci(r["return_ratio"], r.get("return_ratio_ci")),
-              f"{r['ours_cost']:.1f}", f"{r['theirs_cost']:.1f}",
+              f"{r['ours_cost']:.1f} / {r['theirs_cost']:.1f}",
               _with_ci(r["cost_ratio"], r.get("cost_ratio_ci")),
-              f"{r.get('ours_median_cost', float('nan')):.1f}",
+              f"{r.get('ours_median_cost', float('nan')):.1f} / "
               f"{r.get('theirs_median_cost', float('nan')):.1f}",
-              f"{r['ours_goals']:.1f}", f"{r['theirs_goals']:.1f}"]
-             for r in results["transfer"]]), ""]
+              f"{r['ours_goals']:.1f} / {r['theirs_goals']:.1f}",
+              "yes" if in_band(r) else "no"] for r in rows]), "",
+            "In band: the cost ratio within 0.7-1.43 with its interval containing 1, the median "
+            "cost ratio in the same band (or both medians 0), the return ratio within 0.8-1.25.",
+            ""]
+        terms = [[r["task"], f"{r['limit']:g}", r.get("run_in", r["task"]),
+                  "deterministic" if r["deterministic"] else "stochastic", k,
+                  f"{v['ours']:.1f} / {v['theirs']:.1f}",
+                  _with_ci(v["theirs"] / max(v["ours"], 1e-9), v["ratio_ci"])]
+                 for r in rows for k, v in r.get("terms", {}).items()]
+        if terms:
+            out += ["### Cost steps per term, ours / Safety-Gymnasium (mean per episode)", "",
+                    markdown_table(["expert", "limit", "run in", "policy", "term",
+                                    "steps ours / theirs", "ratio (95% CI)"], terms), ""]
     return "\n".join(out)
 
 
@@ -466,12 +637,18 @@ def main() -> None:
     ap.add_argument("--tasks", default="CarGoal1,PointGoal1,CarCircle1,PointCircle1")
     ap.add_argument("--episodes", type=int, default=4)
     ap.add_argument("--policy-episodes", type=int, default=64)
+    ap.add_argument("--limits", default="",
+                    help="comma-separated expert cost limits for the transfer (default 25, "
+                         "Circle 20)")
+    ap.add_argument("--source-only", action="store_true",
+                    help="transfer: run the experts in their source task only")
     ap.add_argument("--parts", default=",".join(PARTS),
                     help=f"comma-separated subset of {','.join(PARTS)}")
     ap.add_argument("--out", type=Path, default=ROOT / "experiments/results/sim2sim.json")
     args = ap.parse_args()
     t = time.perf_counter()
     tasks, parts = args.tasks.split(","), args.parts.split(",")
+    limits = [float(x) for x in args.limits.split(",") if x] or None
     unknown = sorted(set(parts) - set(PARTS))
     if unknown:
         raise SystemExit(f"unknown --parts {unknown}; choose from {','.join(PARTS)}")
@@ -483,7 +660,10 @@ def main() -> None:
                              if task.startswith("CarGoal")},
         "shifts": lambda: {task: shift_table(task) for task in tasks
                            if task.startswith("CarGoal")},
-        "transfer": lambda: [r for task in tasks for r in transfer(task, args.policy_episodes)]}
+        "layouts": lambda: {t: layout_table(t) for task in tasks
+                            for t in (task, target_task(task))},
+        "transfer": lambda: [r for task in tasks for r in transfer(
+            task, args.policy_episodes, limits, not args.source_only)]}
     results = {"machine": machine(), "command": "python -m experiments.sim2sim " + " ".join(
         f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if k != "out")}
     results.update({part: measure[part]() for part in PARTS if part in parts})

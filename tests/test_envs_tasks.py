@@ -8,7 +8,16 @@ from env_helpers import batch_episodes, jitted
 
 from safecdt_jax import envs
 from safecdt_jax.envs.geometry import pseudo_lidar
-from safecdt_jax.envs.goal import GOAL_KEEPOUT, HAZARD_KEEPOUT, VASE_KEEPOUT
+from safecdt_jax.envs.goal import (
+    GOAL_KEEPOUT,
+    HAZARD_KEEPOUT,
+    VASE_CREEP_STEPS,
+    VASE_KEEPOUT,
+    VASE_RADIUS,
+    VASE_RESTITUTION,
+    VASE_SPEED_COST,
+)
+from safecdt_jax.envs.robots import GRAVITY
 
 
 def _reset(name, key=0):
@@ -147,6 +156,56 @@ def test_pushing_a_vase_costs_in_level_2_only():
             costs.append(float(moved.cost))
         assert np.linalg.norm(np.asarray(moved.task["vases"][0] - ahead)) > 0.01  # pushed
         assert max(costs) == expected
+
+
+@pytest.mark.parametrize("name", ["CarGoal2", "PointGoal2"])
+def test_released_vase_slides_then_creeps_and_costs_while_above_the_threshold(name):
+    # A vase sliding at 0.5 m/s, far from the robot: Coulomb friction (mu g) slows it while
+    # that is the slower decay, then the soft-contact creep, exp(-1 / n) per step; it costs on
+    # every step its speed is still >= 1e-4 m/s (Safety-Gymnasium's velocity threshold).
+    env, params, s, _ = _reset(name)
+    far = s.data.qpos[:2] + jnp.array([1.0, 1.0]) * 3.0
+    task = {**s.task, "vases": s.task["vases"].at[0].set(far),
+            "vase_vel": s.task["vase_vel"].at[0].set(jnp.array([0.5, 0.0]))}
+    speed, expected_speeds, costs = 0.5, [], []
+    for _ in range(40):
+        speed = max(speed - GRAVITY * env.dt, speed * np.exp(-1 / VASE_CREEP_STEPS))
+        expected_speeds.append(speed)
+        _, terms, _, task = env.task.step(jax.random.PRNGKey(0), params, env.robot, s.data,
+                                          task, env.dt)
+        costs.append(float(terms["cost_vases_velocity"]))
+        assert float(jnp.linalg.norm(task["vase_vel"][0])) == pytest.approx(speed, rel=1e-4)
+    expected = [float(v >= VASE_SPEED_COST) for v in expected_speeds]
+    assert costs == expected and 0 < sum(costs) < 40
+    assert float(terms["cost_vases_contact"]) == 0.0
+
+
+def test_robot_kicks_a_vase_ahead_at_one_plus_restitution_times_its_speed():
+    # A Point moving at 0.5 m/s along +x meets a vase just overlapping its front: the vase takes
+    # (1 + e) times the closing speed, then decays (Coulomb or creep, whichever is slower).
+    env, params, s, _ = _reset("PointGoal2")
+    xy = jnp.array([0.0, 0.0])
+    data = s.data.replace(qpos=jnp.array([0.0, 0.0, 0.0]), qvel=jnp.array([0.5, 0.0, 0.0]))
+    reach = env.robot.circles[0][2] + VASE_RADIUS  # body circle + vase disc, metres
+    task = {**s.task, "vases": s.task["vases"].at[0].set(xy + jnp.array([reach - 0.01, 0.0])),
+            "vase_vel": jnp.zeros_like(s.task["vase_vel"])}
+    _, terms, _, task = env.task.step(jax.random.PRNGKey(0), params, env.robot, data, task,
+                                      env.dt)
+    kicked = (1 + VASE_RESTITUTION) * 0.5
+    speed = max(kicked - GRAVITY * env.dt, kicked * np.exp(-1 / VASE_CREEP_STEPS))
+    np.testing.assert_allclose(np.asarray(task["vase_vel"][0]), [speed, 0.0], atol=1e-5)
+    assert float(terms["cost_vases_contact"]) == 1.0
+    assert float(terms["cost_vases_velocity"]) == 1.0
+
+
+def test_circle_boundary_just_inside_and_just_outside():
+    env, p2 = envs.make("PointCircle2")
+    _, _, s, _ = _reset("PointCircle2")
+    for x, y, cost in ((1.124, 0.0, 0.0), (1.126, 0.0, 1.0), (0.0, -1.124, 0.0),
+                       (0.0, -1.126, 1.0), (1.124, 1.124, 0.0), (-1.126, 1.124, 1.0)):
+        data = s.data.replace(qpos=jnp.array([x, y, 0.0]))
+        terms = env.task.step(None, p2, env.robot, data, {}, env.dt)[1]
+        assert float(terms["cost_out_of_boundary"]) == cost, (x, y)
 
 
 @pytest.mark.slow

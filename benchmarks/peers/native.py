@@ -8,7 +8,8 @@ It imports only the peer's packages, never this project. Requests (JSON):
   random actions in [-1, 1]^2 (`actions` null) or the given open-loop script (from rest).
 - `{"cmd": "policy", "task": ..., "weights": "policy.npz", "episodes": 16, "seed": 0,
   "deterministic": true}`: an exported expert (a tanh MLP on normalised observations, see
-  `experiments.sim2sim.export_policy`); per-episode return, cost and goals.
+  `experiments.sim2sim.export_policy`); per-episode return, cost and goals, and per cost term
+  (`TERMS`, absent terms 0) the number of steps it was positive.
 - `{"cmd": "contacts", "task": "CarGoal1", "actions": [[a0, a1], ...], "steps": 300,
   "start": 150, "seed": 0}`: per constant action (held from rest), the mean over steps
   `start`..`steps` of each ground contact's force on the car in the chassis frame (left wheel,
@@ -20,6 +21,8 @@ It imports only the peer's packages, never this project. Requests (JSON):
   masses and inertias), from rest: the mean speed over steps 40-100 at a = (1, 1), the speed
   after 10 steps, and the mean gyro z over steps 40-100 at a = (1, -1), averaged over
   `layouts` resets; [n_shifts, 3].
+- `{"cmd": "layouts", "task": "CarGoal2", "episodes": 256, "seed": 0}`: object positions
+  after each reset and the placement constants (see `layouts`).
 The observation is Safety-Gymnasium's flattened one, checked against the key order that this
 project's envs use (sensors, caster angular velocity, caster orientation, then lidars).
 """
@@ -29,6 +32,7 @@ import sys
 
 import numpy as np
 
+TERMS = ("cost_hazards", "cost_vases_contact", "cost_vases_velocity", "cost_out_of_boundary")
 ORDER = ("accelerometer", "velocimeter", "gyro", "magnetometer", "ballangvel_rear",
          "ballquat_rear", "goal_lidar", "hazards_lidar", "vases_lidar", "circle_lidar")
 
@@ -80,24 +84,31 @@ def _policy(weights: dict, deterministic: bool, rng):
 
 
 def policy(task: str, weights: str, episodes: int, seed: int, deterministic: bool) -> dict:
-    """Per-episode return, cost (cost steps) and goals reached of an exported expert."""
+    """Per-episode return, cost (cost steps), goals reached and cost steps per term (`TERMS`) of
+    an exported expert."""
     env, rng = make(task), np.random.default_rng(seed)
     with np.load(weights) as z:
         act = _policy(dict(z), deterministic, rng)
-    rets, costs, goals = [], [], []
+    rets, costs, goals, terms = [], [], [], []
     for ep in range(episodes):
         obs, _ = env.reset(seed=seed + ep)
         ret = cost = goal = 0.0
+        steps = dict.fromkeys(TERMS, 0.0)
         done = False
         while not done:
             obs, r, c, term, trunc, info = env.step(act(obs))
             ret, cost = ret + r, cost + float(c > 0)
             goal += float(info.get("goal_met", False))
+            for k in TERMS:
+                steps[k] += float(info.get(k, 0.0) > 0)
             done = term or trunc
         rets.append(ret)
         costs.append(cost)
         goals.append(goal)
-    return {"return": np.asarray(rets), "cost": np.asarray(costs), "goals": np.asarray(goals)}
+        terms.append([steps[k] for k in TERMS])
+    terms = np.asarray(terms).reshape(episodes, len(TERMS))
+    return {"return": np.asarray(rets), "cost": np.asarray(costs), "goals": np.asarray(goals),
+            **{k: terms[:, i] for i, k in enumerate(TERMS)}}
 
 
 def contacts(task: str, actions: list, steps: int, start: int, seed: int) -> dict:
@@ -181,12 +192,41 @@ def shifts(task: str, shifts: list, layouts: int) -> dict:
     return {"values": np.asarray(out)}
 
 
+def layouts(task: str, episodes: int, seed: int) -> dict:
+    """Positions after `episodes` resets (seeds seed, seed + 1, ...): agent and goal [E, 2],
+    hazards and vases [E, n, 2] (m; n = 0 when the task has none), and the placement constants:
+    extents, and per object kind (agent, goal, hazards, vases) its count, size and keepout."""
+    env = make(task)
+    agent, goal, hazards, vases = [], [], [], []
+    for ep in range(episodes):
+        env.reset(seed=seed + ep)
+        t = env.unwrapped.task
+        agent.append(t.agent.pos[:2])
+        goal.append(t.goal.pos[:2] if hasattr(t, "goal") else np.zeros(2))
+        hazards.append([p[:2] for p in t.hazards.pos] if hasattr(t, "hazards") else [])
+        vases.append([p[:2] for p in t.vases.pos] if hasattr(t, "vases") else [])
+    t = env.unwrapped.task
+    out = {"agent": np.asarray(agent), "goal": np.asarray(goal),
+           "hazards": np.asarray(hazards).reshape(episodes, -1, 2),
+           "vases": np.asarray(vases).reshape(episodes, -1, 2),
+           "extents": np.asarray(t.placements_conf.extents, float)}
+    for name in ("agent", "goal", "hazards", "vases"):
+        obj = getattr(t, name, None)
+        out[f"{name}_num"] = np.asarray(getattr(obj, "num", 1 if obj is not None else 0))
+        out[f"{name}_size"] = np.asarray(float(getattr(obj, "size", np.nan) or np.nan))
+        out[f"{name}_keepout"] = np.asarray(float(getattr(obj, "keepout", np.nan)))
+        placements = getattr(obj, "placements", None)
+        out[f"{name}_placements"] = np.asarray(placements if placements else np.zeros((0, 4)),
+                                                float).reshape(-1, 4)
+    return out
+
+
 def main() -> None:
     """Reads the request, writes the arrays."""
     request = json.loads(open(sys.argv[1]).read())
     cmd = request.pop("cmd")
     result = {"trace": trace, "policy": policy, "contacts": contacts,
-              "shifts": shifts}[cmd](**request)
+              "shifts": shifts, "layouts": layouts}[cmd](**request)
     np.savez(sys.argv[2], **result)
 
 

@@ -17,6 +17,17 @@ HAZARD_KEEPOUT = 0.18
 VASE_KEEPOUT = 0.15
 VASE_RADIUS = 0.1  # m: the 0.2 m vase cube as a disc (its inscribed circle)
 VASE_SPEED_COST = 1e-4  # m/s: a vase moving at least this fast costs (level 2)
+# A pushed vase in Safety-Gymnasium is a 8e-6 kg box on MuJoCo's soft contacts: it is knocked
+# ahead of the robot rather than carried, and keeps moving (costing) long after Coulomb
+# friction would have stopped it. Two effective constants, fitted to native cost-step counts of
+# the limit-25 experts of CarGoal1 and PointGoal1 run in their level-2 tasks (experiments.sim2sim,
+# 2026-12-06): a vase leaves at (1 + e) times the robot's closing speed, and its speed decays no
+# faster than by exp(-1 / n) per env step. Per env step, not per second: the Car's world runs at
+# a 0.004 s timestep, the Point's at 0.002 s, and the fits agree in steps (Car 0.1 s, Point
+# 0.05 s), not in seconds. (A resting box kicked by hand decays with 0.03 s on both; pushed
+# boxes move for longer: they also tip and spin, which a disc cannot.)
+VASE_RESTITUTION = 0.5
+VASE_CREEP_STEPS = 2.5
 LIDAR_RANGE = 3.0  # m
 GOAL_BONUS = 1.0
 
@@ -69,7 +80,9 @@ class GoalTask:
 
         Vases weigh 8e-6 kg against the robot's 5e-3 to 3e-2 kg, so the robot pushes them without
         feeling them: a vase overlapping a robot circle is moved out along the contact normal and
-        takes the robot's normal velocity there; floor friction then decelerates it by mu g.
+        leaves at (1 + `VASE_RESTITUTION`) times the robot's closing speed there; floor friction
+        then slows it by mu g, but never faster than by exp(-1 / `VASE_CREEP_STEPS`) per env step
+        (`dt` seconds), so a pushed vase keeps moving (and costing) after contact as in MuJoCo.
         Vases do not collide with each other (documented deviation). Returns (task, contact).
         """
         xy, yaw, vel, omega = data.qpos[:2], data.qpos[2], data.qvel[:2], data.qvel[2]
@@ -80,14 +93,21 @@ class GoalTask:
         dist = jnp.linalg.norm(delta, axis=-1)
         normal = delta / jnp.maximum(dist, 1e-9)[..., None]
         pen = (circles[None, :, 2] + VASE_RADIUS - dist) * params.vase_mask[:, None]
+        # Each vase is pushed by the robot circle it overlaps most: two overlapping circles
+        # along one normal must not hand it the robot's speed twice.
+        rows = jnp.arange(pen.shape[0])
+        deepest = jnp.argmax(pen, axis=1)
+        pen, normal, c_vel = pen[rows, deepest], normal[rows, deepest], c_vel[deepest]
         touching = pen > 0
-        pos = task["vases"] + jnp.sum(jnp.where(touching, pen, 0.0)[..., None] * normal, axis=1)
-        v_push = jnp.sum(c_vel[None] * normal, axis=-1)  # robot speed along each normal
+        pos = task["vases"] + jnp.where(touching, pen, 0.0)[:, None] * normal
+        v_push = jnp.sum(c_vel * normal, axis=-1)  # the robot's speed along the normal
         v_vase = task["vase_vel"]
-        gap = jnp.maximum(v_push - jnp.sum(v_vase[:, None] * normal, axis=-1), 0.0)
-        v_vase = v_vase + jnp.sum(jnp.where(touching, gap, 0.0)[..., None] * normal, axis=1)
+        gap = jnp.maximum(v_push - jnp.sum(v_vase * normal, axis=-1), 0.0)
+        kick = (1.0 + VASE_RESTITUTION) * jnp.where(touching, gap, 0.0)
+        v_vase = v_vase + kick[:, None] * normal
         speed = jnp.linalg.norm(v_vase, axis=-1)
-        slow = jnp.maximum(speed - GRAVITY * params.friction_scale * dt, 0.0)
+        coulomb = speed - GRAVITY * params.friction_scale * dt
+        slow = jnp.maximum(coulomb, speed * jnp.exp(-1.0 / VASE_CREEP_STEPS))
         v_vase = v_vase * (slow / jnp.maximum(speed, 1e-12))[:, None]
         pos = pos + v_vase * dt
         return {**task, "vases": pos, "vase_vel": v_vase}, jnp.any(touching)
