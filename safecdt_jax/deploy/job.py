@@ -96,6 +96,7 @@ def run_deployment(
     per-episode metrics [seeds][episodes] and the across-seed summary; plus configs, versions
     and timings.
     """
+    from safecdt_jax import envs
     from safecdt_jax.deploy.config import make_variant
     from safecdt_jax.deploy.loop import make_spec, seed_keys
     from safecdt_jax.deploy.sweep import stack_specs, sweep
@@ -151,6 +152,7 @@ def run_deployment(
         "checkpoint": str(Path(ckpt).absolute()),
         "source": policy.meta.get("task"),
         "target": target,
+        "target_env": envs.env_version(target),
         "seeds": seeds,
         "seed": seed,
         "reference_return": r_ref,

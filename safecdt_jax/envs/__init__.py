@@ -31,12 +31,16 @@ from safecdt_jax.envs.robots import CAR, POINT  # noqa: E402
 from safecdt_jax.envs.rollout import random_episode  # noqa: E402
 from safecdt_jax.envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State  # noqa: E402
 
-# Per robot: bump when that robot's dynamics or sensors, or the task rules it runs under, change
-# (models, traction, sensor models, costs, layouts). Cached data and expert snapshots made under
-# another version are rebuilt. Car 3: the caster's slip and the chassis chatter (sim2sim); Car 4:
-# contact forces with friction limits (turning on one wheel, mixed drive); Car 5: the chassis
-# roll reaches the velocimeter's x (sim2sim: its std was a quarter of the native one).
+# Per robot: bump when that robot's dynamics or sensors change (models, traction, sensor
+# models). Cached data and expert snapshots made under another version are rebuilt. Car 3: the
+# caster's slip and the chassis chatter (sim2sim); Car 4: contact forces with friction limits
+# (turning on one wheel, mixed drive); Car 5: the chassis roll reaches the velocimeter's x
+# (sim2sim: its std was a quarter of the native one).
 PHYSICS_VERSIONS = {"Car": 5, "Point": 2}
+# Per task: bump when a task's rules change (rewards, costs, objects). Goal 2: vases are knocked
+# ahead and creep to rest, and cost as in Safety-Gymnasium (2026-12-06; level 1's costs are
+# unchanged, so level-1 data and experts stay valid).
+TASK_VERSIONS = {"Goal": 2, "Circle": 1}
 
 NAMES = tuple(f"{robot}{task}{level}" for robot in ("Car", "Point") for task in ("Goal", "Circle")
               for level in (1, 2))
@@ -56,6 +60,14 @@ def physics_version(name: str) -> int:
     return PHYSICS_VERSIONS[_robot_name(name)]
 
 
+def env_version(name: str) -> str:
+    """What identifies the dynamics and rules of task `name`, e.g. 'Car5-Goal2': its robot's
+    physics version and its task's rules version. ValueError if the name is unknown."""
+    robot = _robot_name(name)
+    task = name[len(robot):-1]
+    return f"{robot}{PHYSICS_VERSIONS[robot]}-{task}{TASK_VERSIONS[task]}"
+
+
 def make(name: str) -> tuple[SafetyEnv, EnvParams]:
     """The env and default params for a task name such as 'CarGoal2' (robot, task, level).
 
@@ -73,5 +85,6 @@ def make(name: str) -> tuple[SafetyEnv, EnvParams]:
     return _ENVS[key], params
 
 
-__all__ = ["MAX_HAZARDS", "MAX_VASES", "NAMES", "PHYSICS_VERSIONS", "EnvParams", "SafetyEnv",
-           "State", "make", "physics_version", "random_episode"]
+__all__ = ["MAX_HAZARDS", "MAX_VASES", "NAMES", "PHYSICS_VERSIONS", "TASK_VERSIONS", "EnvParams",
+           "SafetyEnv",
+           "State", "env_version", "make", "physics_version", "random_episode"]

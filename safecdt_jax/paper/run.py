@@ -58,13 +58,15 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
     """Everything that decides an experiment's result, as JSON-ready data (two runs with equal
     specs give the same result, so a finished one is reused)."""
     from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.envs import env_version
     from safecdt_jax.pairs import parse_pair
 
     source, target = parse_pair(e.pair)
     spec = {"format": RECORD_FORMAT, "pair": e.pair, "name": e.name, "kind": e.kind,
             "seeds": e.seeds, "episodes": e.episodes, "budget": plan.budget}
     if e.kind == "deploy":
-        spec |= {"task": source if e.task == "source" else target,
+        task = source if e.task == "source" else target
+        spec |= {"task": task, "env": env_version(task),
                  "runs": [[v, float(b)] for v, b in e.runs], "horizon": plan.horizon,
                  "seed": plan.seed, "stop_over_budget": True, "checkpoint": dict(ckpt_id)}
         # How LoRA ran changes the bits of a LoRA run only: runs without LoRA share records.
@@ -73,7 +75,7 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
             spec |= {"lora_in_turn": in_turn, "lora_labels": plan.lora_labels}
         return spec
     return spec | {"algos": list(plan.baseline_algos), "preset": plan.baseline_preset,
-                   "stop_over_budget": True, "data": ckpt_id["data"]}
+                   "stop_over_budget": True, "data": ckpt_id["data"], "env": env_version(target)}
 
 
 def _has_lora(e: Experiment) -> bool:
