@@ -1,0 +1,42 @@
+"""experiments/sim2sim.py: the agreement band, layout statistics and target names (no peer venv)."""
+
+import numpy as np
+import pytest
+
+from experiments.sim2sim import in_band, layout_stats, target_task
+from safecdt_jax import envs
+
+
+def _row(ours, theirs, med_ours, med_theirs, ret_ratio=1.0, ci=(0.8, 1.3)):
+    return {"ours_cost": ours, "theirs_cost": theirs, "cost_ratio": theirs / max(ours, 1e-9),
+            "cost_ratio_ci": ci, "ours_median_cost": med_ours, "theirs_median_cost": med_theirs,
+            "return_ratio": ret_ratio}
+
+
+def test_in_band_needs_mean_median_interval_and_return():
+    assert in_band(_row(100.0, 120.0, 90.0, 100.0))
+    assert not in_band(_row(100.0, 150.0, 90.0, 100.0))  # mean ratio 1.5
+    assert not in_band(_row(100.0, 120.0, 90.0, 100.0, ci=(1.05, 1.4)))  # interval misses 1
+    assert not in_band(_row(100.0, 120.0, 63.5, 0.0))  # one median 0, the other not
+    assert in_band(_row(30.0, 40.0, 0.0, 0.0, ci=(0.7, 2.6)))  # both medians 0
+    assert not in_band(_row(100.0, 120.0, 90.0, 100.0, ret_ratio=0.79))
+
+
+def test_layout_stats_on_a_hand_made_layout():
+    pos = {"agent": np.array([[0.0, 0.0], [1.0, -1.0]]), "goal": np.array([[1.0, 0.0], [1.0, 1.0]]),
+           "hazards": np.array([[[0.5, 0.0]], [[1.0, 0.0]]]), "vases": np.zeros((2, 0, 2))}
+    stats = layout_stats(pos, {"agent": 0.4, "hazards": 0.18, "vases": 0.15})
+    assert stats["agent |x| mean"] == 0.5 and stats["agent |x|,|y| max"] == 1.0
+    assert stats["agent-goal distance"] == pytest.approx(1.5)
+    assert stats["agent-nearest hazard"] == pytest.approx(0.75)
+    assert stats["smallest keepout slack"] == pytest.approx(0.5 - 0.58)  # a violated keepout
+    assert "agent-nearest vase" not in stats
+
+
+def test_targets_and_env_versions():
+    assert target_task("CarGoal1") == "CarGoal2" and target_task("PointCircle1") == "PointCircle2"
+    assert envs.env_version("CarGoal2") == (
+        f"Car{envs.PHYSICS_VERSIONS['Car']}-Goal{envs.TASK_VERSIONS['Goal']}")
+    assert envs.env_version("PointCircle1").startswith("Point")
+    with pytest.raises(ValueError, match="unknown task 'CarGoal3'"):
+        envs.env_version("CarGoal3")
