@@ -2,6 +2,7 @@
 
 import json
 import os
+import socket
 import subprocess
 import sys
 import textwrap
@@ -27,15 +28,25 @@ _RUN = textwrap.dedent("""
     from safecdt_jax.pretrain import default_pretrain
     from safecdt_jax.pretrain.loop import make_train_chunk, prepare_data, stream_key, train
 
+    from safecdt_jax.distributed import Cluster, initialize, local_copy
+
+    if sys.argv[1] == "cluster":  # argv: cluster ADDRESS PROCESS_ID, 2 processes
+        initialize(Cluster(sys.argv[2], 2, int(sys.argv[3])))
     data = expert_episodes()
     cfg = default_pretrain("tiny", steps=50, chunk=25, batch_size=8)
     model = CDTConfig.preset("tiny", data.observations.shape[-1], data.actions.shape[-1], 20)
     optim = OptimConfig()
     arrays, weights, _ = prepare_data(data, cfg)
     state = init_train_state(stream_key(0, "init"), model, optim)
-    devices = jax.devices() if sys.argv[1] == "all" else None
+    devices = jax.devices() if sys.argv[1] in ("all", "cluster") else None
     state, history = train(state, arrays, weights, model, optim, cfg, progress=False,
                            devices=devices)
+    if sys.argv[1] == "cluster":  # this process's copy of the replicated state
+        print(json.dumps({"devices": len(state.step.sharding.device_set),
+                          "params": [np.asarray(x).tolist()
+                                     for x in jax.tree.leaves(local_copy(state.params))],
+                          "loss": history.metrics["loss"]}))
+        sys.exit(0)
     mesh = jax.sharding.Mesh(np.asarray(jax.devices()), ("data",))
     chunk = make_train_chunk(model, optim, cfg, mesh=mesh)
     hlo = chunk.lower(state, jax.random.key(0), arrays, weights, 50).compile().as_text()
@@ -58,6 +69,47 @@ def _train(devices: int, which: str) -> dict:
                           env=env, cwd=ROOT, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _train_two_processes(folder: Path) -> list[dict]:
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # one CPU device each
+    env.update(JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT / "tests"))
+    address = f"127.0.0.1:{_free_port()}"
+    # Output to files, not pipes: a peer blocked on a full pipe would stall the collectives.
+    logs = [folder / f"rank{rank}.log" for rank in (0, 1)]
+    procs = [subprocess.Popen([sys.executable, "-c", _RUN, "cluster", address, str(rank)],
+                              stdout=open(logs[rank], "w"), stderr=subprocess.STDOUT, env=env,
+                              cwd=ROOT) for rank in (0, 1)]
+    try:
+        for p in procs:
+            p.wait(timeout=300)
+    finally:  # a hung peer must not outlive the test
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    texts = [log.read_text() for log in logs]
+    for rank, (p, text) in enumerate(zip(procs, texts, strict=True)):
+        assert p.returncode == 0, f"process {rank}:\n{text[-3000:]}"
+    return [json.loads(text.strip().splitlines()[-1]) for text in texts]
+
+
+@pytest.mark.slow
+def test_two_processes_train_like_one_device_and_agree(tmp_path):
+    ranks = _train_two_processes(tmp_path)
+    one = _train(1, "default")
+    assert [r["devices"] for r in ranks] == [2, 2]  # one global mesh over both processes
+    for a, b in zip(ranks[0]["params"], ranks[1]["params"], strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))  # replicated state
+    np.testing.assert_allclose(ranks[0]["loss"], one["loss"], rtol=1e-5)
+    for a, b in zip(ranks[0]["params"], one["params"], strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
 
 
 def _tiny():
