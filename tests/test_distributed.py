@@ -3,13 +3,12 @@ one process's, written once."""
 
 import json
 import os
-import socket
-import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from process_helpers import free_port, run_peers
 from typer.testing import CliRunner
 
 from safecdt_jax.distributed import Cluster, cluster_from
@@ -52,12 +51,6 @@ def test_the_cli_reports_a_process_id_out_of_range_in_one_line(tiny_run):
         "error: process id 5 out of range for 2 process(es): it must be in 0..1"]
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _deploy_command(ckpt, out) -> list[str]:
     sets = [arg for k, v in SETTINGS.items() for arg in ("--set", f"{k}={v}")]
     return [sys.executable, "-c", "from safecdt_jax.cli import main; main()", "deploy",
@@ -71,27 +64,19 @@ def test_two_processes_deploy_like_one_and_only_process_0_writes(tiny_run, tmp_p
     from safecdt_jax.deploy.job import run_deployment
 
     _, ckpt, _ = tiny_run
-    address = f"127.0.0.1:{_free_port()}"
+    address = f"127.0.0.1:{free_port()}"
     base = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # one CPU device each
     base.update(JAX_PLATFORMS="cpu", SAFECDT_CACHE=str(tmp_path / "cache"))
     # Process 0 is told by flags, process 1 by JAX's environment variables.
-    pipes = dict(cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    procs = [
-        subprocess.Popen([*_deploy_command(ckpt, tmp_path / "out0"), "--coordinator", address,
-                          "--num-processes", "2", "--process-id", "0"], env=base, **pipes),
-        subprocess.Popen(_deploy_command(ckpt, tmp_path / "out1"), env=dict(
-            base, JAX_COORDINATOR_ADDRESS=address, JAX_NUM_PROCESSES="2", JAX_PROCESS_ID="1"),
-            **pipes),
-    ]
-    try:
-        logs = [p.communicate(timeout=240)[0] for p in procs]
-    finally:  # a hung peer must not outlive the test
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-    for rank, (p, log) in enumerate(zip(procs, logs, strict=True)):
-        assert p.returncode == 0, f"process {rank}:\n{log[-3000:]}"
+    commands = [[*_deploy_command(ckpt, tmp_path / "out0"), "--coordinator", address,
+                 "--num-processes", "2", "--process-id", "0"],
+                _deploy_command(ckpt, tmp_path / "out1")]
+    envs = [base, dict(base, JAX_COORDINATOR_ADDRESS=address, JAX_NUM_PROCESSES="2",
+                       JAX_PROCESS_ID="1")]
+    done = run_peers(commands, envs, tmp_path, ROOT, timeout=240)
+    for rank, (code, log) in enumerate(done):
+        assert code == 0, f"process {rank}:\n{log[-3000:]}"
+    logs = [log for _, log in done]
     assert "process 1: done; process 0 writes" in logs[1]
     assert not (tmp_path / "out1").exists()  # process 1 wrote nothing
     gathered = json.loads((tmp_path / "out0" / "results.json").read_text())

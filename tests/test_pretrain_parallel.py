@@ -2,7 +2,6 @@
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import textwrap
@@ -12,6 +11,7 @@ import jax
 import numpy as np
 import pytest
 from data_helpers import expert_episodes
+from process_helpers import free_port, run_peers
 
 from safecdt_jax.model import CDTConfig, OptimConfig, init_train_state
 from safecdt_jax.pretrain import default_pretrain
@@ -71,33 +71,15 @@ def _train(devices: int, which: str) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _train_two_processes(folder: Path) -> list[dict]:
     env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}  # one CPU device each
     env.update(JAX_PLATFORMS="cpu", PYTHONPATH=str(ROOT / "tests"))
-    address = f"127.0.0.1:{_free_port()}"
-    # Output to files, not pipes: a peer blocked on a full pipe would stall the collectives.
-    logs = [folder / f"rank{rank}.log" for rank in (0, 1)]
-    procs = [subprocess.Popen([sys.executable, "-c", _RUN, "cluster", address, str(rank)],
-                              stdout=open(logs[rank], "w"), stderr=subprocess.STDOUT, env=env,
-                              cwd=ROOT) for rank in (0, 1)]
-    try:
-        for p in procs:
-            p.wait(timeout=300)
-    finally:  # a hung peer must not outlive the test
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
-    texts = [log.read_text() for log in logs]
-    for rank, (p, text) in enumerate(zip(procs, texts, strict=True)):
-        assert p.returncode == 0, f"process {rank}:\n{text[-3000:]}"
-    return [json.loads(text.strip().splitlines()[-1]) for text in texts]
+    address = f"127.0.0.1:{free_port()}"
+    commands = [[sys.executable, "-c", _RUN, "cluster", address, str(rank)] for rank in (0, 1)]
+    done = run_peers(commands, [env, env], folder, ROOT, timeout=300)
+    for rank, (code, text) in enumerate(done):
+        assert code == 0, f"process {rank}:\n{text[-3000:]}"
+    return [json.loads(text.strip().splitlines()[-1]) for _, text in done]
 
 
 @pytest.mark.slow
