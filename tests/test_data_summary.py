@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from safecdt_jax.data import make_dataset, summarize_dataset, write_dataset
-from safecdt_jax.data.summary import between_group_share
+from safecdt_jax.data.summary import between_group_share, policy_cost_bands
 from safecdt_jax.io import write_text_atomic
 
 COSTS = [0.0, 10.0, 25.0, 31.0, 100.0, 150.0]
@@ -86,3 +86,18 @@ def test_variance_share_between_snapshots_known_values():
     costs = np.array(COSTS)
     want = 6 * 11.0**2 / np.sum((costs - costs.mean()) ** 2)
     assert summarize_dataset(data)["cost_share_by_snapshot"] == pytest.approx(want)
+
+
+def test_policy_cost_bands_known_values():
+    # Policy 0 costs 0, 10 (mean 5: the careful band, its edge inclusive); policy 1 costs 30
+    # (mean 30); policy 2 costs 100, 140 (mean 120).
+    costs = np.array([0.0, 10.0, 30.0, 100.0, 140.0])
+    out = policy_cost_bands(costs, np.array([0, 0, 1, 2, 2]))
+    assert out["policy_cost_min"] == 5.0 and out["policy_cost_max"] == 120.0
+    assert out["policy_cost_shares"] == {"<=5": 0.4, "5-20": 0.0, "20-60": 0.2, ">60": 0.4}
+    assert policy_cost_bands(costs, None)["policy_cost_shares"] is None
+    data = dataclasses.replace(known_dataset(), episode_info={"snapshot": np.arange(6) % 2})
+    # costs 0, 25, 100 | 10, 31, 150: policy means 41.67 and 63.67, three episodes each
+    s = summarize_dataset(data)
+    assert s["policy_cost_min"] == pytest.approx(125 / 3)
+    assert s["policy_cost_shares"] == {"<=5": 0.0, "5-20": 0.0, "20-60": 0.5, ">60": 0.5}

@@ -299,3 +299,58 @@ def test_executed_data_have_their_own_default_file(monkeypatch, tmp_path):
     assert paths.dataset_path("CarCircle1", "sampled") == paths.dataset_path("CarCircle1")
     assert paths.dataset_path("CarCircle1", "executed").name == "CarCircle1-executed.hdf5"
 
+
+
+def test_warm_start_continues_the_snapshot_and_rejects_another_shape():
+    from safecdt_jax.experts.run import train_experts
+
+    _, out = _single(0)
+    snap = jax.tree.map(lambda x: np.asarray(x[-1]), out["snapshot"])  # its last round
+    run = train_experts(TINY, [CostSchedule(2, 2)], [3], warm_start=snap)
+    # The normaliser goes on counting from the snapshot's observations: one round more each.
+    per_round = TINY.num_envs * TINY.horizon
+    np.testing.assert_array_equal(run.snapshots["norm"].count[0],
+                                  snap["norm"].count + per_round * np.arange(1, 3))
+    cold = train_experts(TINY, [CostSchedule(2, 2)], [3])
+    assert not np.allclose(run.snapshots["actor"]["log_std"], cold.snapshots["actor"]["log_std"])
+    wide = make_train(TINY.replace(hidden=(8,))).init(jax.random.PRNGKey(0))
+    with pytest.raises(ValueError, match="does not match this task and config"):
+        train_experts(TINY, [CostSchedule(2, 2)], [0],
+                      warm_start={"actor": wide.params["actor"], "norm": wide.norm})
+
+
+def test_warm_started_experts_append_to_a_snapshot_file(tmp_path):
+    from typer.testing import CliRunner
+
+    from safecdt_jax.cli import app
+    from safecdt_jax.experts.export import load_snapshots, merge_snapshots
+
+    snaps = tmp_path / "snaps.npz"
+    base = ["expert", "--task", "PointCircle1", "--preset", "tiny", "--steps", "320",
+            "--keep", "2", "--snapshots", str(snaps)]
+    res = CliRunner().invoke(app, [*base, "--cost-limit", "5,none", "--out",
+                                   str(tmp_path / "a")])
+    assert res.exit_code == 0, res.output
+    first, _ = load_snapshots(snaps)
+    res = CliRunner().invoke(app, [*base, "--cost-limit", "2", "--out", str(tmp_path / "b"),
+                                   "--warm-start", f"{snaps}:1", "--set", "pid_ki=0.05",
+                                   "--append"])
+    assert res.exit_code == 0, res.output
+    merged, meta = load_snapshots(snaps)
+    entries = meta["snapshots"]
+    assert len(entries) == 6 and [e["run"] for e in entries] == [0, 0, 1, 1, 2, 2]
+    assert "expert" not in entries[0] and entries[4]["expert"]["pid_ki"] == 0.05
+    assert entries[4]["schedule"][0] == 2.0
+    np.testing.assert_array_equal(merged["actor"]["log_std"][:4], first["actor"]["log_std"])
+    # The warm start read snapshot 1 (run 0's last): its normaliser count carried on.
+    assert merged["norm"].count[4] == first["norm"].count[1] + 8 * 20
+    bad = CliRunner().invoke(app, [*base, "--cost-limit", "2", "--out", str(tmp_path / "c"),
+                                   "--warm-start", f"{snaps}:6"])
+    assert bad.exit_code == 1 and "holds 6 snapshots (0-5)" in bad.output
+    from safecdt_jax.experts.export import write_snapshots
+    from safecdt_jax.experts.run import train_experts
+
+    wide = write_snapshots(tmp_path / "wide.npz", train_experts(
+        TINY.replace(hidden=(8,)), [CostSchedule(5, 5)], [0]), keep=1)
+    with pytest.raises(ValueError, match="differs from .* in hidden"):
+        merge_snapshots(tmp_path / "m.npz", snaps, wide)

@@ -126,3 +126,33 @@ def test_one_listed_device_is_the_default_program_bit_for_bit():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert make_train_chunk(model, OptimConfig(), cfg) is make_train_chunk(
         model, OptimConfig(), cfg, mesh=None)
+
+
+@pytest.mark.slow
+def test_cli_data_parallel_flag_trains_like_one_device(tmp_path):
+    """`pretrain --data-parallel` on 2 devices writes the checkpoint one device writes, up to
+    the order of the gradient sums; `--num-processes 2` without the flag is refused."""
+    from data_helpers import write_expert_episodes
+    from typer.testing import CliRunner
+
+    from safecdt_jax.cli import app
+    from safecdt_jax.pretrain.checkpoint import load_checkpoint
+
+    data = write_expert_episodes(tmp_path / "d.hdf5")
+    args = ["pretrain", "--data", str(data), "--preset", "tiny", "--steps", "20", "--batch", "8"]
+    run = ("import sys; from safecdt_jax.cli import main; "
+           f"sys.argv = ['safecdt-jax', *{args!r}, '--out', {str(tmp_path / 'two')!r}, "
+           "'--data-parallel']; main()")
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2",
+               JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", run], capture_output=True, text=True, env=env,
+                          cwd=ROOT, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "20 updates" in proc.stdout and "data-parallel over 2 devices of 1" in proc.stdout
+    one = CliRunner().invoke(app, [*args, "--out", str(tmp_path / "one")])
+    assert one.exit_code == 0, one.output
+    params = [jax.tree.leaves(load_checkpoint(tmp_path / n).params) for n in ("two", "one")]
+    for a, b in zip(*params, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-6)
+    refused = CliRunner().invoke(app, [*args, "--num-processes", "2"])
+    assert refused.exit_code == 1 and "add --data-parallel" in refused.output

@@ -113,6 +113,10 @@ def data_summary(
         typer.echo(f"  variance between expert snapshots: cost {s['cost_share_by_snapshot']:.2f}"
                    f", return {s['return_share_by_snapshot']:.2f} (the rest: layout and "
                    f"sampling)")
+    if s["policy_cost_shares"] is not None:
+        bands = ", ".join(f"{k} {v:.1%}" for k, v in s["policy_cost_shares"].items())
+        typer.echo(f"  policy-mean cost {s['policy_cost_min']:.1f} to "
+                   f"{s['policy_cost_max']:.1f}; episodes by their policy's mean cost: {bands}")
     labels = {"episodes": ">= 1000 episodes", "cost_span": "costs 0 to >= 100",
               "cost_split": ">= 20% at cost <= 30 and > 30",
               "frontier": "best return at cost 30-100 >= 1.1x best at cost <= 10"}

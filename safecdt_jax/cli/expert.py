@@ -30,26 +30,41 @@ def expert_cmd(
         help="Also write the snapshots the collector rolls out to this .npz file.")] = None,
     keep: Annotated[int, typer.Option(
         min=1, help="Snapshots per expert in --snapshots, evenly spaced over training.")] = 8,
+    append: Annotated[bool, typer.Option(
+        help="Add the snapshots to those already in --snapshots instead of replacing the "
+             "file (experts of the same architecture; docs/EXPERTS.md).")] = False,
+    warm_start: Annotated[str | None, typer.Option(
+        help="FILE.npz:INDEX: start every expert's actor and normaliser from snapshot INDEX "
+             "of a snapshot file (0-based, expert-major: with --keep K, expert i's k-th "
+             "snapshot is i*K+k); the critics and the Lagrange multiplier start fresh.")] = None,
+    settings: Annotated[list[str] | None, typer.Option(
+        "--set", metavar="FIELD=VALUE",
+        help="Set any ExpertConfig field (repeatable), e.g. --set pid_ki=0.05, --set "
+             "min_std=0.2; docs/EXPERTS.md lists them.")] = None,
 ) -> None:
     """Trains one expert per (cost limit, seed), all in one compiled program; writes learning
     curves (PNG, JSON), resumable orbax checkpoints and the snapshot history."""
     from tqdm import tqdm
 
     from safecdt_jax import paths
-    from safecdt_jax.experts.config import CostSchedule, expert_preset
+    from safecdt_jax.experts.config import CostSchedule, ExpertConfig, expert_preset
     from safecdt_jax.experts.export import (
+        merge_snapshots,
         plot_curves,
         write_curves,
         write_snapshots,
         write_tensorboard,
     )
     from safecdt_jax.experts.run import train_experts
+    from safecdt_jax.validate import field_overrides
 
     try:
         schedules = [CostSchedule.parse(t) for t in cost_limit.split(",")]
         given = {"num_envs": num_envs, "minibatches": minibatches}
-        cfg = expert_preset(preset, task=task, steps=steps,
-                            **{k: v for k, v in given.items() if v is not None})
+        overrides = field_overrides(settings or [], ExpertConfig)
+        cfg = expert_preset(preset, **(overrides | dict(task=task, steps=steps) | {
+            k: v for k, v in given.items() if v is not None}))
+        start_from = None if warm_start is None else _snapshot_at(warm_start, cfg)
     except ValueError as e:
         fail(e)
     out = paths.cache_root() / "experts" / task if out is None else out
@@ -68,7 +83,7 @@ def expert_cmd(
 
         try:
             result = train_experts(cfg, schedules, range(seeds), out=out, chunk_rounds=chunk,
-                                   resume=resume, progress=progress)
+                                   resume=resume, progress=progress, warm_start=start_from)
         except ValueError as e:
             fail(e)
     write_curves(out / "curves.json", result)
@@ -82,5 +97,30 @@ def expert_cmd(
         typer.echo(f"  {label}: last tenth return {r[-tail:].mean():.2f}, cost "
                    f"{c[-tail:].mean():.1f}")
     if snapshots is not None:
-        write_snapshots(snapshots, result, keep)
+        if append and snapshots.exists():
+            fresh = write_snapshots(out / "snapshots.npz", result, keep)
+            try:
+                merge_snapshots(snapshots, snapshots, fresh)
+            except ValueError as e:
+                fail(f"{e}; the new snapshots are in {fresh}")
+        else:
+            write_snapshots(snapshots, result, keep)
         typer.echo(f"snapshots: {snapshots}")
+
+
+def _snapshot_at(spec: str, cfg) -> dict:
+    """Snapshot INDEX of FILE from 'FILE:INDEX', checked against `cfg`'s task (ValueError)."""
+    import jax
+
+    from safecdt_jax.experts.export import load_snapshots
+
+    path, _, index = spec.rpartition(":")
+    if not path or not index.isdigit():
+        raise ValueError(f"--warm-start {spec!r}: expected FILE.npz:INDEX")
+    snaps, meta = load_snapshots(path)
+    if meta["task"] != cfg.task:
+        raise ValueError(f"--warm-start {path}: snapshots of {meta['task']}, not {cfg.task}")
+    n = len(meta["snapshots"])
+    if int(index) >= n:
+        raise ValueError(f"--warm-start {spec!r}: the file holds {n} snapshots (0-{n - 1})")
+    return jax.tree.map(lambda x: x[int(index)], snaps)

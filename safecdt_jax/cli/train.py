@@ -5,7 +5,15 @@ from typing import Annotated
 
 import typer
 
-from safecdt_jax.cli.app import analyze, app, fail
+from safecdt_jax.cli.app import (
+    Coordinator,
+    NumProcesses,
+    ProcessId,
+    analyze,
+    app,
+    fail,
+    join_processes,
+)
 
 
 @app.command()
@@ -32,6 +40,13 @@ def pretrain(
         help="Set any PretrainConfig or CDTConfig field (repeatable), e.g. --set "
              "micro_batch=16, --set token_bins=0, --set labels=episode; docs/CLI.md lists "
              "them.")] = None,
+    data_parallel: Annotated[bool, typer.Option(
+        help="Split every batch over all devices of all cooperating processes (gradients "
+             "reduced by the compiler; equal to one device up to float summation order). "
+             "Default: one device.")] = False,
+    coordinator: Coordinator = None,
+    num_processes: NumProcesses = None,
+    process_id: ProcessId = None,
 ) -> None:
     """Pretrains the CDT offline (OSRL's recipe) and saves orbax checkpoints with their configs.
 
@@ -39,8 +54,15 @@ def pretrain(
     (labels, relabelling, normalisation, micro-batches, token spans) or of the model's
     `CDTConfig` (size, token encoding, dropout); the checkpoint records them all, and evaluate
     and deploy read the token encoding back from it (docs/METHOD.md section 0).
+    `--data-parallel` trains over every device, also of N processes started with
+    `--num-processes` (process 0 writes the checkpoints; docs/CLI.md).
     """
     import dataclasses
+
+    if (num_processes or 1) > 1 and not data_parallel:
+        fail("--num-processes > 1 trains one model together: add --data-parallel")
+    join_processes(coordinator, num_processes, process_id)
+    import jax
 
     from safecdt_jax import pretrain as pt
     from safecdt_jax.model.config import CDTConfig
@@ -55,9 +77,12 @@ def pretrain(
         overrides.update({k: v for k, v in given.items() if v is not None})
         cfg = pt.default_pretrain(preset, **overrides)
         result = pt.pretrain(data, out, preset=preset, config=cfg, task=task, resume=resume,
-                             overwrite=overwrite, model_overrides=model)
+                             overwrite=overwrite, model_overrides=model,
+                             devices=jax.devices() if data_parallel else None)
     except ValueError as e:  # CheckpointError, DatasetError and bad settings: one clean line
         fail(e)
+    if not jax.process_index() == 0:
+        return  # process 0 reports for all
     meta, hist = result.meta, result.history
     loss, ll = hist.metrics["loss"], hist.metrics["log_likelihood"]
     # One chunk's mean swings by +-1 nat on heavy-tailed data: end on the mean of the last 10.
@@ -70,6 +95,9 @@ def pretrain(
         f"nats/dim (first chunk -> mean of the last {tail}); "
         f"R_ref {meta['dataset']['reference_return']:.2f}"
     )
+    if data_parallel:
+        typer.echo(f"data-parallel over {jax.device_count()} devices of "
+                   f"{jax.process_count()} process(es)")
     typer.echo(f"checkpoint: {result.path}")
 
 

@@ -41,6 +41,10 @@ def summarize_dataset(
     "snapshot"), the fraction of the episodes' cost (return) variance that lies between the
     snapshots' means (1: the policy decides the cost; near 0: the layout and the sampling do);
     None without snapshot ids or with a constant quantity.
+    policy_cost_min / policy_cost_max: the lowest and highest mean episode cost of a behaviour
+    policy (episodes sharing a snapshot id), and policy_cost_shares: the share of episodes
+    whose policy's mean cost falls in each of `POLICY_COST_BANDS` ({'<=5': 0.12, ...}); all
+    None without snapshot ids.
     With `png_path`, writes a reward-cost scatter PNG there atomically (matplotlib Agg).
     JSON-serialisable: plain Python numbers and None.
     """
@@ -76,9 +80,36 @@ def summarize_dataset(
     groups = data.episode_info.get("snapshot")
     out["cost_share_by_snapshot"] = between_group_share(costs, groups)
     out["return_share_by_snapshot"] = between_group_share(returns, groups)
+    out |= policy_cost_bands(costs, groups)
     if png_path is not None:
         _scatter(png_path, costs, returns, budget, str(data.attrs.get("task", "")))
     return out
+
+
+# Bands of a behaviour policy's mean episode cost (raw units), upper edges inclusive: careful
+# (<= 5, the careful-data issue's level), moderate, around a budget of 30, and reckless.
+POLICY_COST_BANDS = ((0.0, 5.0), (5.0, 20.0), (20.0, 60.0), (60.0, float("inf")))
+
+
+def _band_name(lo: float, hi: float) -> str:
+    return f"<={hi:g}" if lo == 0 else (f">{lo:g}" if hi == float("inf") else f"{lo:g}-{hi:g}")
+
+
+def policy_cost_bands(costs: np.ndarray, groups: np.ndarray | None) -> dict[str, Any]:
+    """The range of the per-policy mean episode costs (raw units) and the share of episodes
+    per band of their policy's mean (`POLICY_COST_BANDS`; a mean of exactly 5 is '<=5').
+    Keys policy_cost_min, policy_cost_max, policy_cost_shares; None each without groups."""
+    if groups is None:
+        return {"policy_cost_min": None, "policy_cost_max": None, "policy_cost_shares": None}
+    _, idx, counts = np.unique(np.asarray(groups), return_inverse=True, return_counts=True)
+    idx = idx.reshape(-1)
+    means = np.bincount(idx, weights=np.asarray(costs, np.float64)) / counts
+    per_episode = means[idx]
+    shares = {_band_name(lo, hi): float(np.mean((per_episode > lo) & (per_episode <= hi))
+                                        if lo > 0 else np.mean(per_episode <= hi))
+              for lo, hi in POLICY_COST_BANDS}
+    return {"policy_cost_min": float(means.min()), "policy_cost_max": float(means.max()),
+            "policy_cost_shares": shares}
 
 
 def between_group_share(values: np.ndarray, groups: np.ndarray | None) -> float | None:

@@ -92,11 +92,48 @@ def write_snapshots(path: str | os.PathLike, run: ExpertRun, keep: int = 8) -> P
                            "train_return": float(run.curves["return"][i, r]),
                            "train_cost": float(run.curves["cost"][i, r])}
                           for i, r in zip(runs, rnds, strict=True)]}
+    return _write_snapshot_file(path, snaps, meta)
+
+
+# ExpertConfig fields a snapshot's rollout reads (network shape, std floor, normaliser): the
+# files merged into one must agree on them; training fields (limits, gains, steps) may differ.
+ROLLOUT_FIELDS = ("task", "hidden", "min_std", "obs_var_floor", "obs_clip", "episode_len")
+
+
+def _write_snapshot_file(path, snaps: dict, meta: dict) -> Path:
     leaves = jax.tree_util.tree_flatten_with_path(snaps)[0]
     arrays = {jax.tree_util.keystr(p): np.asarray(v, np.float32) for p, v in leaves}
     with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, meta=np.asarray(json.dumps(meta)), **arrays)
     return Path(path)
+
+
+def merge_snapshots(out: str | os.PathLike, *files: str | os.PathLike) -> Path:
+    """Writes the snapshots of `files`, in order, into one snapshot file `out` (atomically; `out`
+    may be one of `files`). Each snapshot keeps its meta and gains `expert` (the config of
+    the run that made it, where it differs from the first file's) and `run` renumbered so runs
+    stay distinct. ValueError when the files disagree on the task, its physics version or a
+    field the rollout reads (`ROLLOUT_FIELDS`)."""
+    if not files:
+        raise ValueError("merge_snapshots: no input files")
+    loaded = [load_snapshots(f) for f in files]
+    first = loaded[0][1]
+    for f, (_, meta) in zip(files, loaded, strict=True):
+        bad = [k for k in ROLLOUT_FIELDS if meta["expert"][k] != first["expert"][k]]
+        if meta["physics_version"] != first["physics_version"]:
+            bad.append("physics_version")
+        if bad:
+            raise ValueError(f"merge_snapshots: {os.fspath(f)} differs from "
+                             f"{os.fspath(files[0])} in {', '.join(bad)}")
+    entries, offset = [], 0
+    for _, meta in loaded:
+        for snap in meta["snapshots"]:
+            config = snap.get("expert", meta["expert"])
+            extra = {} if config == first["expert"] else {"expert": config}
+            entries.append(snap | extra | {"run": snap["run"] + offset})
+        offset += 1 + max(s["run"] for s in meta["snapshots"])
+    snaps = jax.tree.map(lambda *xs: np.concatenate(xs), *(s for s, _ in loaded))
+    return _write_snapshot_file(out, snaps, first | {"snapshots": entries})
 
 
 def load_snapshots(path: str | os.PathLike) -> tuple[dict[str, Any], dict]:
@@ -126,4 +163,5 @@ def _actor_template(cfg: ExpertConfig, obs_dim: int):
     return init_networks(jax.random.PRNGKey(0), obs_dim, 2, cfg.hidden, cfg.init_std)["actor"]
 
 
-__all__ = ["load_snapshots", "plot_curves", "select_rounds", "write_curves", "write_snapshots"]
+__all__ = ["ROLLOUT_FIELDS", "load_snapshots", "merge_snapshots", "plot_curves", "select_rounds",
+           "write_curves", "write_snapshots"]

@@ -48,9 +48,28 @@ class ExpertRun:
                                                                 strict=True)]
 
 
-def _meta(cfg: ExpertConfig, schedules, seeds) -> dict[str, Any]:
-    return {"format": 1, "expert": cfg.to_json(),
+def _meta(cfg: ExpertConfig, schedules, seeds, warm_start=None) -> dict[str, Any]:
+    meta = {"format": 1, "expert": cfg.to_json(),
             "schedules": [s.as_array().tolist() for s in schedules], "seeds": list(seeds)}
+    if warm_start is not None:  # a resumed run must start from the same snapshot
+        leaves = jax.tree.leaves(warm_start)
+        meta["warm_start"] = float(sum(np.abs(np.asarray(x, np.float64)).sum() for x in leaves))
+    return meta
+
+
+def _warm_started(runner: Any, snapshot: dict, runs: int) -> Any:
+    """`runner` (batched over `runs`) with every run's actor and normaliser from `snapshot`."""
+    want = jax.tree.structure({"actor": runner.params["actor"], "norm": runner.norm})
+    if jax.tree.structure(snapshot) != want or any(
+            np.shape(a) != np.shape(b)[1:] for a, b in zip(
+                jax.tree.leaves(snapshot),
+                jax.tree.leaves({"actor": runner.params["actor"], "norm": runner.norm}),
+                strict=True)):
+        raise ValueError("warm_start: the snapshot's actor or normaliser does not match this "
+                         "task and config (hidden widths, observation size)")
+    tile = lambda x: jnp.broadcast_to(jnp.asarray(x, jnp.float32), (runs, *np.shape(x)))
+    snap = jax.tree.map(tile, snapshot)
+    return runner._replace(params=runner.params | {"actor": snap["actor"]}, norm=snap["norm"])
 
 
 def _save_history(path: Path, curves: dict, snapshots: Any) -> None:
@@ -71,13 +90,18 @@ def _load_history(path: Path, snapshot_def) -> tuple[dict, Any]:
 def train_experts(cfg: ExpertConfig, schedules: Sequence[CostSchedule], seeds: Sequence[int],
                   out: str | os.PathLike | None = None, chunk_rounds: int = 4,
                   resume: bool = False,
-                  progress: Callable[[int, dict], None] | None = None) -> ExpertRun:
+                  progress: Callable[[int, dict], None] | None = None,
+                  warm_start: dict | None = None) -> ExpertRun:
     """Trains one expert per (schedule, seed) pair, all in one vmapped program.
 
     `chunk_rounds` rounds run per jitted call; `progress(rounds_done, last_round)` is called
     after each chunk with the last round's curves ({name: [runs]}). With `out`, checkpoints
     after each chunk; `resume` continues from the latest one (its config, schedules and seeds
-    must equal these, else ValueError). Raises ValueError for an empty run list.
+    must equal these, else ValueError). `warm_start` ({'actor', 'norm'}, one snapshot as
+    `load_snapshots` gives it, indexed) starts every run's actor and observation normaliser from
+    that snapshot; the critics, optimiser and PID start fresh (a competent driver tightened to a
+    lower limit: issue 49's careful experts). Raises ValueError for an empty run list or a
+    snapshot of another shape.
     """
     from safecdt_jax.pretrain.checkpoint import _manager, checkpoint_steps
 
@@ -92,7 +116,9 @@ def train_experts(cfg: ExpertConfig, schedules: Sequence[CostSchedule], seeds: S
     init = jax.jit(jax.vmap(train.init))
     chunk_fn = jax.jit(jax.vmap(train.run_rounds, in_axes=(0, 0, None)), static_argnums=2)
     runner = init(keys)
-    meta = _meta(cfg, scheds, run_seeds)
+    if warm_start is not None:
+        runner = _warm_started(runner, warm_start, len(runs))
+    meta = _meta(cfg, scheds, run_seeds, warm_start)
     out = None if out is None else Path(out).expanduser()
     curves: dict[str, np.ndarray] = {k: np.zeros((len(runs), 0), np.float32) for k in CURVES}
     snapshots = None
