@@ -141,3 +141,42 @@ def test_deploy_set_picks_the_lora_labels_and_records_them(tiny_run, tmp_path):
     stage, hindsight = (records[r]["runs"][0]["metrics"] for r in ("stage", "hindsight"))
     assert stage["cost"][0] == hindsight["cost"][0]  # episode 0 runs before any finetuning
     assert stage["lora_loss"] != hindsight["lora_loss"]
+
+
+def test_several_checkpoints_deploy_together_as_they_deploy_alone(tiny_run, tmp_path):
+    """Two pretraining seeds' checkpoints x 2 deployment seeds in one sweep: each checkpoint's
+    rows equal its own deployment; the summary splits the spread between checkpoints from the
+    spread across deployment seeds; a checkpoint of another model is refused."""
+    import numpy as np
+
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.deploy.job import run_deployment
+    from safecdt_jax.pretrain import default_pretrain, pretrain
+
+    data, ckpt, _ = tiny_run
+    other = pretrain(data, tmp_path / "seed1", preset="tiny", progress=False,
+                     config=default_pretrain("tiny", steps=2, chunk=2, seed=1)).path
+    cfg = DeployConfig(episodes=2, horizon=6, stage_len=1)
+    kw = dict(cfg=cfg, progress=False, seed=3)
+    both = run_deployment([ckpt, other], "PointCircle2", ["safe_cdt"], [30.0], 2, **kw)
+    alone = [run_deployment(c, "PointCircle2", ["safe_cdt"], [30.0], 2, **kw)
+             for c in (ckpt, other)]
+    assert both["seeds"] == 4 and both["deploy_seeds"] == 2 and len(both["checkpoints"]) == 2
+    for name, rows in both["runs"][0]["metrics"].items():
+        want = alone[0]["runs"][0]["metrics"][name] + alone[1]["runs"][0]["metrics"][name]
+        # Not bit-equal: with a base model per row the forward pass is a batched matmul
+        # over per-row weights instead of one matmul of shared weights (another summation
+        # order; after a LoRA step the returns differ by ~5e-5 relative). A swapped
+        # checkpoint or key would differ by O(1).
+        np.testing.assert_allclose(rows, want, rtol=1e-3, atol=1e-4, err_msg=name)
+    s = both["runs"][0]["summary"]
+    means = [a["runs"][0]["summary"]["mean_cost_mean"] for a in alone]
+    stds = [a["runs"][0]["summary"]["mean_cost_std"] for a in alone]
+    assert s["checkpoints"] == 2 and s["seeds"] == 4
+    assert s["mean_cost_between_std"] == pytest.approx(np.std(means), abs=1e-5)
+    assert s["mean_cost_within_std"] == pytest.approx(np.mean(stds), abs=1e-5)
+    wide = pretrain(data, tmp_path / "wide", preset="tiny", progress=False,
+                    config=default_pretrain("tiny", steps=2, chunk=2),
+                    model_overrides={"cost_scale": 0.5}).path
+    with pytest.raises(ValueError, match="must be pretraining seeds of one run"):
+        run_deployment([ckpt, wide], "PointCircle2", ["zero_shot"], [30.0], 1, **kw)

@@ -352,5 +352,5 @@ def test_warm_started_experts_append_to_a_snapshot_file(tmp_path):
 
     wide = write_snapshots(tmp_path / "wide.npz", train_experts(
         TINY.replace(hidden=(8,)), [CostSchedule(5, 5)], [0]), keep=1)
-    with pytest.raises(ValueError, match="differs from .* in hidden"):
+    with pytest.raises(ValueError, match=r"differs from .* in hidden"):
         merge_snapshots(tmp_path / "m.npz", snaps, wide)

@@ -144,21 +144,26 @@ def sample_windows(
     `constant=True` (`CDTConfig.constant_targets`) gives every step its episode's t=0 values.
     jit with `static_argnames=("batch", "K", "constant")`. If no episode has positive weight
     (an empty buffer) the draw is arbitrary and its window is fully masked.
+    A `data.source` [n] (optional) makes the episodes a view: episode i reads its steps from
+    row `source[i]` of the step arrays (observations, actions, rewards, costs) and keeps its own
+    length and offsets, so relabelled copies need no copied steps (`pretrain.seeds`).
     """
     lengths = jnp.asarray(data.lengths, jnp.int32)
-    n, horizon = data.rewards.shape
+    n, horizon = lengths.shape[0], data.rewards.shape[1]
+    source = getattr(data, "source", None)
     if weights is None:
         p = lengths.astype(jnp.float32)
     else:
         p = jnp.where(lengths > 0, jnp.asarray(weights, jnp.float32), 0.0)
     k_episode, k_start = jax.random.split(key)
     episode = _draw(k_episode, p, batch)
+    row = episode if source is None else jnp.asarray(source, jnp.int32)[episode]
     length = lengths[episode]
     start = jax.random.randint(k_start, (batch,), 0, jnp.maximum(length, 1), dtype=jnp.int32)
     timesteps = start[:, None] + jnp.arange(K, dtype=jnp.int32)[None, :]
     valid = timesteps < length[:, None]
     step = jnp.minimum(timesteps, horizon - 1)  # gather index; padded steps are zeroed below
-    rows = episode[:, None]
+    rows = row[:, None]
 
     def window(x):
         x = jnp.asarray(x)[rows, step]
@@ -166,8 +171,8 @@ def sample_windows(
 
     # Suffix sums over the drawn episodes only: O(batch * T), no precomputed [n, T] arrays.
     picked = _Picked(
-        rewards=jnp.asarray(data.rewards)[episode],
-        costs=jnp.asarray(data.costs)[episode],
+        rewards=jnp.asarray(data.rewards)[row],
+        costs=jnp.asarray(data.costs)[row],
         lengths=length,
         return_offset=_offset(data, "return_offset", n)[episode],
         cost_offset=_offset(data, "cost_offset", n)[episode],

@@ -65,8 +65,24 @@ def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None,
     return env, env_params, policy, cfg, float(policy.meta["dataset"]["reference_return"])
 
 
+def _stacked_policies(ckpts: Sequence[str | os.PathLike], target: str, cfg, first,
+                      stochastic_actions: bool | None, r_ref: float):
+    """The base params of every checkpoint stacked on a leading axis; ValueError when one
+    differs from the first (`first`, its policy) in model config or reference return (they
+    must be pretraining seeds of one run on one data set)."""
+    params = [first.params]
+    for path in ckpts[1:]:
+        _, _, policy, _, ref = load_deployment(path, target, cfg, stochastic_actions)
+        if policy.cfg != first.cfg or ref != r_ref:
+            raise ValueError(f"{os.fspath(path)}: another model config or data than "
+                             f"{os.fspath(ckpts[0])}; checkpoints deployed together must be "
+                             f"pretraining seeds of one run")
+        params.append(policy.params)
+    return jax.tree.map(lambda *xs: np.stack(xs), *params)
+
+
 def run_deployment(
-    ckpt: str | os.PathLike,
+    ckpt: str | os.PathLike | Sequence[str | os.PathLike],
     target: str,
     variants: Sequence[str],
     budgets: Sequence[float],
@@ -80,6 +96,12 @@ def run_deployment(
     stochastic_actions: bool | None = None,
 ) -> dict[str, Any]:
     """Deploy checkpoint `ckpt` into task `target` for every (variant, budget, shift) and seed.
+
+    `ckpt` may list several checkpoints (pretraining seeds of one run: same model config and
+    data): each is deployed with the same `seeds` deployment seeds, all in the same sweep
+    (a base model per seed row), and the per-episode metrics hold checkpoint-major rows
+    [checkpoints * seeds]; each run's summary adds the spreads between checkpoints and across
+    deployment seeds (`summarize_runs`).
 
     `runs`, when given, lists the (variant, budget) pairs to run instead of every variant x
     budget (e.g. one variant at five budgets beside four variants at one), each at every shift.
@@ -109,7 +131,15 @@ def run_deployment(
     if seeds < 1:
         raise ValueError(f"seeds must be >= 1, got {seeds}")
     progress = progress and jax.process_index() == 0  # one bar among cooperating processes
-    env, env_params, policy, cfg, r_ref = load_deployment(ckpt, target, cfg, stochastic_actions)
+    ckpts = [ckpt] if isinstance(ckpt, str | os.PathLike) else list(ckpt)
+    if not ckpts:
+        raise ValueError("run_deployment: no checkpoint")
+    env, env_params, policy, cfg, r_ref = load_deployment(ckpts[0], target, cfg,
+                                                          stochastic_actions)
+    base, several = policy.params, len(ckpts) > 1
+    if several:
+        base = _stacked_policies(ckpts, target, cfg, policy, stochastic_actions, r_ref)
+        base = jax.tree.map(lambda x: np.repeat(x, seeds, axis=0), base)
     dynamics = list(dynamics) or [{}]
     pairs = list(itertools.product(variants, budgets)) if runs is None else list(runs)
     combos = [(v, b, shift) for v, b in pairs for shift in dynamics]
@@ -123,12 +153,15 @@ def run_deployment(
     batched = len(dynamics) > 1
     swept_params = stack_params(per_run) if batched else per_run[0]
     keys = seed_keys(seed, seeds)
+    if several:  # every checkpoint meets the same deployment seeds (paired comparisons)
+        keys = jax.numpy.concatenate([keys] * len(ckpts))
     chunk = cfg.stage_len if cfg.episodes % cfg.stage_len == 0 else cfg.episodes
-    label = f"deploy {len(combos)} run(s) x {seeds} seeds"
+    label = f"deploy {len(combos)} run(s) x {len(ckpts) * seeds} seeds"
     start = time.perf_counter()
     with Bar(cfg.episodes, label, enabled=progress) as bar:
-        metrics = sweep(keys, policy.params, swept_params, specs, env=env, model_cfg=policy.cfg,
-                        cfg=cfg, chunk=chunk, progress=bar.update, env_params_batched=batched)
+        metrics = sweep(keys, base, swept_params, specs, env=env, model_cfg=policy.cfg,
+                        cfg=cfg, chunk=chunk, progress=bar.update, env_params_batched=batched,
+                        params_batched=several)
         metrics = jax.device_get(metrics)
     wall = time.perf_counter() - start
     runs = []
@@ -143,17 +176,20 @@ def run_deployment(
             "budget": float(budget),
             "dynamics": dict(shift),
             "env_params": params_record(per_run[r]),
-            "summary": summarize_runs(named),
+            "summary": summarize_runs(named, len(ckpts)),
             "metrics": {k: v.astype(float).tolist() for k, v in named.items()},
         })
-    steps = len(combos) * seeds * cfg.episodes * (cfg.horizon or env.episode_length)
+    steps = len(combos) * len(ckpts) * seeds * cfg.episodes * (cfg.horizon or env.episode_length)
+    several_record = {"checkpoints": [str(Path(c).absolute()) for c in ckpts]} if several else {}
     return {
         "format": RESULTS_FORMAT,
-        "checkpoint": str(Path(ckpt).absolute()),
+        "checkpoint": str(Path(ckpts[0]).absolute()),
+        **several_record,
         "source": policy.meta.get("task"),
         "target": target,
         "target_env": envs.env_version(target),
-        "seeds": seeds,
+        "seeds": len(ckpts) * seeds,
+        "deploy_seeds": seeds,
         "seed": seed,
         "reference_return": r_ref,
         "deploy_config": dataclasses.asdict(cfg),

@@ -36,11 +36,13 @@ from safecdt_jax.model.config import CDTConfig
 
 @functools.cache
 def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batched: bool,
-              finetune: bool = True):
+              finetune: bool = True, params_batched: bool = False):
     """Jitted (init, episodes) programs over runs x seeds for one (env, model, config); without
-    the LoRA steps when not `finetune` (`loop.deploy_episodes`)."""
+    the LoRA steps when not `finetune` (`loop.deploy_episodes`); with a base model per seed
+    when `params_batched`."""
     static = dict(env=env, model_cfg=model_cfg, cfg=cfg)
     env_axis = 0 if env_batched else None
+    base_axis = 0 if params_batched else None
 
     def init(key, lora, spec):
         return deploy_init(key, lora, spec, **static)
@@ -50,7 +52,7 @@ def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batch
                                finetune=finetune)
 
     init_all = jax.vmap(jax.vmap(init, (0, 0, None)), (None, None, 0))
-    run_all = jax.vmap(jax.vmap(episodes, (0, None, None, None, None)),
+    run_all = jax.vmap(jax.vmap(episodes, (0, None, base_axis, None, None)),
                        (0, None, None, env_axis, 0))
     # The carry (adapters, optimiser, the online buffer: GBs at hundreds of seeds) is donated, so
     # each chunk updates it in place instead of holding the old and the new copy.
@@ -58,13 +60,15 @@ def _compiled(env: SafetyEnv, model_cfg: CDTConfig, cfg: DeployConfig, env_batch
 
 
 def stored_episodes(run_all: Callable, args: tuple, *, env: SafetyEnv, model_cfg: CDTConfig,
-                    cfg: DeployConfig, env_params_batched: bool, finetune: bool) -> Callable:
+                    cfg: DeployConfig, env_params_batched: bool, finetune: bool,
+                    params_batched: bool = False) -> Callable:
     """The episodes program `run_all` of `_compiled(env, model_cfg, cfg, env_params_batched,
-    finetune)` for arguments shaped like `args`, or, with storing on (`programs.enable`), its
-    stored trace: a warm start then skips tracing the whole deployment (same bits)."""
+    finetune, params_batched)` for arguments shaped like `args`, or, with storing on
+    (`programs.enable`), its stored trace: a warm start then skips tracing the whole
+    deployment (same bits)."""
+    static = (env, model_cfg, cfg, env_params_batched, finetune)
     return programs.cached(run_all, args, name="deploy.sweep.episodes",
-                           static=(env, model_cfg, cfg, env_params_batched, finetune),
-                           donate=(0,))
+                           static=static + ((True,) if params_batched else ()), donate=(0,))
 
 
 def sweep(
@@ -81,13 +85,16 @@ def sweep(
     chunk: int | None = None,
     progress: Callable[[int], None] | None = None,
     return_carry: bool = False,
+    params_batched: bool = False,
 ) -> Metrics | tuple[Metrics, Carry]:
     """Deploy every run in `specs` with every seed key; returns `Metrics` arrays [R, S, E].
 
     Args:
         keys: [S] PRNG keys, one per seed (`loop.seed_keys`); each seed also gets its own fresh
             adapters, drawn from its key.
-        base_params: the pretrained CDT, shared by every run and seed.
+        base_params: the pretrained CDT, shared by every run and seed; with
+            `params_batched` every leaf has a leading [S] axis, one base model per seed (e.g.
+            several pretraining seeds' checkpoints, each deployed with several keys).
         env_params: the target task's params; with `env_params_batched` every leaf has a leading
             [R] axis (e.g. a sweep over friction scales), else one set for all runs.
         specs: a `DeploySpec` whose leaves have a leading [R] axis (`stack_specs`).
@@ -112,9 +119,16 @@ def sweep(
     cfg = cfg.resolved(devices)
     n_seeds = keys.shape[0]
     pad = (-n_seeds) % len(devices)
-    if pad:  # repeat the last key; the padded seeds are computed and dropped
-        keys = jnp.concatenate([keys, jnp.repeat(keys[-1:], pad, axis=0)])
-    lora = init_adapters(keys, base_params, model_cfg)
+    if params_batched and jax.tree.leaves(base_params)[0].shape[0] != n_seeds:
+        raise ValueError(f"base params for {jax.tree.leaves(base_params)[0].shape[0]} seeds, "
+                         f"keys for {n_seeds}")
+    pad_seeds = lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)])
+    if pad:  # repeat the last key (and model); the padded seeds are computed and dropped
+        keys = pad_seeds(keys)
+        if params_batched:
+            base_params = jax.tree.map(pad_seeds, base_params)
+    one_base = jax.tree.map(lambda x: x[0], base_params) if params_batched else base_params
+    lora = init_adapters(keys, one_base, model_cfg)
     # A batch with no LoRA variant (zero-shot, fixed CTG, step changes) gets the program
     # without LoRA steps: the same bits at the cost of the rollouts alone. Read before the
     # specs are spread over the processes (a global array cannot be read whole).
@@ -126,15 +140,17 @@ def sweep(
         replicated = NamedSharding(mesh, PartitionSpec())
         put = distributed.to_global if spread else jax.device_put
         keys, lora = put((keys, lora), seeded)
-        base_params, env_params, specs = put((base_params, env_params, specs), replicated)
+        base_params = put(base_params, seeded if params_batched else replicated)
+        env_params, specs = put((env_params, specs), replicated)
     # Across processes each chunk's metrics are gathered whole into every process.
     whole = distributed.gather if spread else (lambda tree: tree)
-    init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched, finetune)
+    init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched, finetune,
+                                  params_batched)
     carry = init_all(keys, lora, specs)
     run_all = stored_episodes(
         run_all, (carry, jnp.arange(chunk, dtype=jnp.int32), base_params, env_params, specs),
         env=env, model_cfg=model_cfg, cfg=cfg, env_params_batched=env_params_batched,
-        finetune=finetune)
+        finetune=finetune, params_batched=params_batched)
     parts = []
     for start in range(0, cfg.episodes, chunk):
         index = jnp.arange(start, start + chunk, dtype=jnp.int32)

@@ -138,16 +138,14 @@ def make_train_chunk(
     if mesh is not None and cfg.batch_size % mesh.size:
         raise ValueError(f"data-parallel pretraining needs the batch size ({cfg.batch_size}) to "
                          f"be a multiple of the device count ({mesh.size})")
-    program = cfg.replace(steps=1, seed=0, c0=1.0, relabel=False, relabel_percent=0.2,
-                          labels="episode", checkpoint_every=0, max_to_keep=1)
-    return _train_chunk(cdt_cfg, optim, program, donate, mesh)
+    return _train_chunk(cdt_cfg, optim, program_config(cfg), donate, mesh)
 
 
-@functools.lru_cache(maxsize=8)
-def _train_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, donate: bool,
-                 mesh: jax.sharding.Mesh | None = None):
-    batch = None if mesh is None else NamedSharding(mesh, PartitionSpec("data"))
-    update = make_update(cdt_cfg, optim, cfg, batch)
+def chunk_body(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig,
+               batch_sharding: jax.sharding.Sharding | None = None) -> Callable:
+    """The pure (unjitted) `train_chunk(state, key, data, weights, stop) -> (state, metrics)`
+    of `make_train_chunk`: `cfg.chunk` updates in one `lax.scan`, those at `stop` skipped."""
+    update = make_update(cdt_cfg, optim, cfg, batch_sharding)
 
     def train_chunk(state, key, data, weights, stop):
         aux_shape = jax.eval_shape(update, state, key, data, weights)[1]
@@ -155,7 +153,8 @@ def _train_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, do
 
         def body(state, _):
             active = state.step < stop
-            # cond, not where: a skipped update costs nothing (this loop is never vmapped).
+            # cond, not where: a skipped update costs nothing in one run (vmapped over seeds
+            # it becomes a select, and only a run's last chunk has skipped updates).
             state, aux = jax.lax.cond(
                 active, lambda s: update(s, key, data, weights), lambda s: (s, idle), state
             )
@@ -167,6 +166,21 @@ def _train_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, do
         metrics = {k: (v * weight).sum() for k, v in aux.items()}
         return state, {**metrics, "updates": done}
 
+    return train_chunk
+
+
+def program_config(cfg: PretrainConfig) -> PretrainConfig:
+    """`cfg` with every field that does not shape the compiled chunk set to a fixed value, so
+    runs differing only in seed, length or labels share one compile."""
+    return cfg.replace(steps=1, seed=0, c0=1.0, relabel=False, relabel_percent=0.2,
+                       labels="episode", checkpoint_every=0, max_to_keep=1)
+
+
+@functools.lru_cache(maxsize=8)
+def _train_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig, donate: bool,
+                 mesh: jax.sharding.Mesh | None = None):
+    batch = None if mesh is None else NamedSharding(mesh, PartitionSpec("data"))
+    train_chunk = chunk_body(cdt_cfg, optim, cfg, batch)
     donate_argnums = (0,) if donate else ()
     if mesh is None:
         return jax.jit(train_chunk, donate_argnums=donate_argnums)

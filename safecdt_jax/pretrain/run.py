@@ -278,15 +278,9 @@ def train_run(
             "curves": len(history.step)}  # history points already in the TensorBoard events
 
     def save(state: TrainState, history: History) -> None:
-        step = int(state.step)
-        record = {**spec.meta, "dataset": dataset, "step": step, "finished": step >= cfg.steps,
-                  "history": history.to_json(), "wall_time_s": history.wall_s,
-                  "setup_s": setup_s, "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
-        if writer:  # one writer among cooperating processes, of its own copy
-            save_checkpoint(out, local_copy(state), record, max_to_keep=cfg.max_to_keep)
-            curves = {f"pretrain/{k}": v for k, v in history.metrics.items()}
-            write_scalars(tensorboard_dir(out), curves, history.step, start=last["curves"])
-        last.update(step=step, meta=record, curves=len(history.step))
+        record = save_run(spec, local_copy(state) if writer else None, history, dataset,
+                          setup_s, last["curves"])
+        last.update(step=int(state.step), meta=record, curves=len(history.step))
 
     def on_chunk(state: TrainState, history: History) -> None:
         # Save when this chunk crossed a multiple of checkpoint_every (the end is saved below).
@@ -303,6 +297,23 @@ def train_run(
         barrier("pretrain:saved")  # the checkpoint is complete before any process reads it
     meta = last["meta"] if last["meta"] is not None else read_meta(out)
     return PretrainResult(out, state, history, meta)
+
+
+def save_run(spec: RunSpec, state: TrainState | None, history: History,
+             dataset: dict[str, Any], setup_s: float, curves_from: int) -> dict[str, Any]:
+    """Writes `state` as the checkpoint of its step in `spec.out`, with the run's metadata, and
+    the history points from index `curves_from` on as TensorBoard events; returns the
+    metadata. `state` None (a process that does not write): only the metadata."""
+    step = int(history.step[-1]) if state is None else int(state.step)
+    record = {**spec.meta, "dataset": dataset, "step": step,
+              "finished": step >= spec.cfg.steps, "history": history.to_json(),
+              "wall_time_s": history.wall_s, "setup_s": setup_s,
+              "saved_at": time.strftime("%Y-%m-%dT%H:%M:%S%z")}
+    if state is not None:
+        save_checkpoint(spec.out, state, record, max_to_keep=spec.cfg.max_to_keep)
+        curves = {f"pretrain/{k}": v for k, v in history.metrics.items()}
+        write_scalars(tensorboard_dir(spec.out), curves, history.step, start=curves_from)
+    return record
 
 
 def ensure_checkpoint(

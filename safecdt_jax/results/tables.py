@@ -25,13 +25,24 @@ def seed_summaries(metrics: Mapping[str, Any]) -> dict[str, np.ndarray]:
     }
 
 
-def summarize_runs(metrics: Mapping[str, Any]) -> dict[str, float]:
-    """Across seeds: mean and std (population std, numpy's default) of each per-seed summary."""
-    out = {}
+def summarize_runs(metrics: Mapping[str, Any], checkpoints: int = 1) -> dict[str, float]:
+    """Across seeds: mean and std (population std, numpy's default) of each per-seed summary.
+
+    With `checkpoints` > 1 the seeds are checkpoint-major (`checkpoints` pretrained models,
+    each deployed with the same deployment seeds) and each summary also gets its two spreads:
+    `_between_std`, the std of the checkpoints' means, and `_within_std`, the mean over
+    checkpoints of the std across deployment seeds."""
+    out: dict[str, float] = {}
     for name, values in seed_summaries(metrics).items():
         out[f"{name}_mean"] = float(values.mean())
         out[f"{name}_std"] = float(values.std())
+        if checkpoints > 1:
+            grid = np.asarray(values).reshape(checkpoints, -1)
+            out[f"{name}_between_std"] = float(grid.mean(1).std())
+            out[f"{name}_within_std"] = float(grid.std(1).mean())
     out["seeds"] = int(np.shape(metrics["cost"])[0])
+    if checkpoints > 1:
+        out["checkpoints"] = checkpoints
     return out
 
 
