@@ -35,7 +35,12 @@ def test_plan_rejects_bad_values_naming_the_field():
 def test_experiments_of_the_default_plan():
     exps = {e.key: e for e in experiments(PaperPlan())}
     assert len(exps) == 3 * 4 + 1  # main, ctg, source_ctg, baselines per pair; studies once
-    assert exps["CG1-CG2_main"].seeds == 15 and exps["CC1-CC2_main"].seeds == 3
+    # Rows of 15 and 3 runs: 5 pretrained checkpoints x 3 and x 1 deployment seeds.
+    assert (exps["CG1-CG2_main"].seeds, exps["CG1-CG2_main"].pretrain_seeds) == (3, 5)
+    assert (exps["CC1-CC2_main"].seeds, exps["CG1-CG2_studies"].seeds) == (1, 1)
+    assert exps["CG1-CG2_ctg"].pretrain_seeds == 1 and exps["CG1-CG2_ctg"].seeds == 5
+    one = {e.key: e for e in experiments(PaperPlan(pretrain_seeds=1))}
+    assert one["CG1-CG2_main"].seeds == 15 and one["CC1-CC2_main"].seeds == 3
     studies = exps["CG1-CG2_studies"].runs
     assert [b for v, b in studies if v == "safe_cdt"] == [25.0, 30.0, 35.0, 40.0, 50.0]
     assert [v for v, _ in studies if v != "safe_cdt"] == ["no_reweight", "scheduler_only",
@@ -133,9 +138,15 @@ TINY = dict(pairs=("PC1-PC2",), study_pair="PC1-PC2", preset="tiny", horizon=10,
 
 
 def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, monkeypatch):
-    _, ckpt, _ = tiny_run
+    from safecdt_jax.pretrain import default_pretrain, pretrain
+
+    data, ckpt, _ = tiny_run
     monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path / "cache"))
-    plan = quick_plan(**TINY, baseline_algos=("cpq",))
+    # Tables 1-3 on two pretraining seeds' checkpoints x one deployment seed each.
+    seed1 = pretrain(data, tmp_path / "seed1", preset="tiny", progress=False,
+                     config=default_pretrain("tiny", steps=2, chunk=2, seed=1)).path
+    ckpts = {"PC1-PC2": [ckpt, seed1]}
+    plan = quick_plan(**TINY, baseline_algos=("cpq",), pretrain_seeds=2)
     # cached baselines with the plan's settings and the checkpoint's data: Table 7 uses them
     folder = baselines_folder("PC1-PC2", plan.baseline_preset)
     folder.mkdir(parents=True)
@@ -150,8 +161,7 @@ def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, mo
     (folder / "baselines.json").write_text(json.dumps(saved))
     out = tmp_path / "report"
     logs: list[str] = []
-    summary = run_paper(plan, out, checkpoints={"PC1-PC2": ckpt}, progress=False,
-                        log=logs.append)
+    summary = run_paper(plan, out, checkpoints=ckpts, progress=False, log=logs.append)
     assert set(summary["records"]) == {f"PC1-PC2_{n}" for n in
                                        ("main", "studies", "ctg", "source_ctg", "baselines")}
     report = (out / "REPORT.md").read_text()
@@ -164,13 +174,17 @@ def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, mo
         assert (out / "figures" / fig).stat().st_size > 0, fig
     main = json.loads((out / "experiments" / "PC1-PC2_main.json").read_text())
     assert np.asarray(main["results"]["runs"][0]["metrics"]["cost"]).shape == (2, 10)
+    assert [c["seed"] for c in main["spec"]["checkpoints"]] == [0, 1]
+    assert main["results"]["deploy_seeds"] == 1 and "| PC1→PC2 |" in report
+    assert "2 pretrained checkpoints x 1 deployment seeds" in report and "| 2×1 |" in report
+    ctg = json.loads((out / "experiments" / "PC1-PC2_ctg.json").read_text())
+    assert "checkpoints" not in ctg["spec"] and "checkpoints" not in ctg["results"]
 
     # a rerun reuses every finished experiment; a deleted one alone is redone
     (out / "experiments" / "PC1-PC2_ctg.json").unlink()
     stamp = (out / "experiments" / "PC1-PC2_studies.json").stat().st_mtime_ns
     logs.clear()
-    again = run_paper(plan, out, checkpoints={"PC1-PC2": ckpt}, progress=False,
-                      log=logs.append)
+    again = run_paper(plan, out, checkpoints=ckpts, progress=False, log=logs.append)
     ran = [line.split(":")[0] for line in logs if line.endswith("running") or ": running" in line]
     assert ran == ["PC1-PC2_ctg"]
     assert (out / "experiments" / "PC1-PC2_studies.json").stat().st_mtime_ns == stamp

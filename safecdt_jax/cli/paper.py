@@ -30,6 +30,9 @@ def paper(
         help="Train the baselines that are not cached (default on, off with --quick).")]
         = True,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
+    pretrain_seeds: Annotated[int | None, typer.Option(
+        min=1, help="Pretrained checkpoints per pair behind Tables 1-3 (default 5; 1 with "
+                    "--quick): each row runs as checkpoints x deployment seeds.")] = None,
     lora_labels: Annotated[str, typer.Option(
         help="What the LoRA finetuning windows' tokens read: stage (the mean outcome of the "
              "episodes run under the same targets), target or hindsight (the paper's).")]
@@ -50,6 +53,8 @@ def paper(
         study = "CG1-CG2" if "CG1-CG2" in pair_list else pair_list[0]
         settings = dict(pairs=pair_list, study_pair=study, preset=preset, seed=seed,
                         lora_labels=lora_labels)
+        if pretrain_seeds is not None:
+            settings["pretrain_seeds"] = pretrain_seeds
         plan = (quick_plan(**settings) if quick else
                 PaperPlan(**settings, train_baselines=baselines))
     except ValueError as e:

@@ -144,8 +144,9 @@ def sweep(
         env_params, specs = put((env_params, specs), replicated)
     # Across processes each chunk's metrics are gathered whole into every process.
     whole = distributed.gather if spread else (lambda tree: tree)
+    # (`params_batched` passed only when set: the cache keys of the other programs stay.)
     init_all, run_all = _compiled(env, model_cfg, cfg, env_params_batched, finetune,
-                                  params_batched)
+                                  *((True,) if params_batched else ()))
     carry = init_all(keys, lora, specs)
     run_all = stored_episodes(
         run_all, (carry, jnp.arange(chunk, dtype=jnp.int32), base_params, env_params, specs),

@@ -29,6 +29,12 @@ class PaperPlan:
     Attributes:
         pairs: deployment pairs to run (the paper's three).
         budget: cost budget B of every table but Table 2 (30, cost units).
+        pretrain_seeds: pretrained checkpoints per pair behind Tables 1-3 (5; the paper
+            reports one): a row of N seeds runs as P checkpoints (pretraining seeds
+            `seed`..`seed + P - 1`, trained in one vmapped call) x ceil(N / P) deployment
+            seeds, the same deployment seeds on every checkpoint, and reports the spread
+            between checkpoints beside that across deployment seeds. Tables 5-7 and the
+            certificate use checkpoint `seed` alone.
         main_seeds: seeds of the study pair's Table 1 row (15, as the paper's CG1-CG2).
         other_seeds: seeds of the other pairs' Table 1 rows (3).
         study_pair: the pair of Tables 2 and 3 (CG1-CG2).
@@ -59,6 +65,7 @@ class PaperPlan:
 
     pairs: tuple[str, ...] = ("CG1-CG2", "CC1-CC2", "PC1-PC2")
     budget: float = 30.0
+    pretrain_seeds: int = 5
     main_seeds: int = 15
     other_seeds: int = 3
     study_pair: str = "CG1-CG2"
@@ -87,7 +94,8 @@ class PaperPlan:
     def __post_init__(self) -> None:
         from safecdt_jax.pairs import PAIRS
 
-        check.integers(self, "main_seeds", "other_seeds", "study_seeds", "ctg_seeds",
+        check.integers(self, "pretrain_seeds", "main_seeds", "other_seeds", "study_seeds",
+                       "ctg_seeds",
                        "episodes", "intervention_episodes", "source_seeds", "baseline_seeds",
                        "baseline_episodes")
         check.integers(self, "horizon", optional=True)
@@ -118,7 +126,8 @@ class PaperPlan:
 
 # `--quick`: every table and figure from few seeds and episodes (a first look and the test).
 # The baselines keep the full counts: quick never trains them, it reuses the full suite's.
-QUICK = dict(main_seeds=2, other_seeds=2, study_seeds=2, ctg_seeds=2, episodes=10,
+QUICK = dict(pretrain_seeds=1, main_seeds=2, other_seeds=2, study_seeds=2, ctg_seeds=2,
+             episodes=10,
              intervention_episodes=20, source_seeds=2, train_baselines=False)
 
 
@@ -130,8 +139,8 @@ def quick_plan(**overrides: Any) -> PaperPlan:
 @dataclass(frozen=True)
 class Experiment:
     """One experiment: a deployment sweep (`kind` 'deploy', in the pair's `task`: 'target' or
-    'source') of (variant, budget) `runs` x `seeds` x `episodes`, or the pair's baselines
-    (`kind` 'baselines')."""
+    'source') of (variant, budget) `runs` x `pretrain_seeds` checkpoints x `seeds` deployment
+    seeds x `episodes`, or the pair's baselines (`kind` 'baselines')."""
 
     pair: str
     name: str
@@ -140,6 +149,7 @@ class Experiment:
     runs: tuple[tuple[str, float], ...] = ()
     seeds: int = 0
     episodes: int = 0
+    pretrain_seeds: int = 1
 
     @property
     def key(self) -> str:
@@ -158,16 +168,19 @@ def experiments(plan: PaperPlan) -> list[Experiment]:
     """Every experiment of `plan`, in run order (pair by pair)."""
     out = []
     b = plan.budget
+    n_ckpt = plan.pretrain_seeds
+    per_ckpt = lambda seeds: -(-seeds // n_ckpt)  # ceil: at least the requested runs
     for pair in plan.pairs:
         study = pair == plan.study_pair
         out.append(Experiment(pair, "main", "deploy", runs=(("safe_cdt", b),),
-                              seeds=plan.main_seeds if study else plan.other_seeds,
-                              episodes=plan.episodes))
+                              seeds=per_ckpt(plan.main_seeds if study else plan.other_seeds),
+                              episodes=plan.episodes, pretrain_seeds=n_ckpt))
         if study:
             runs = [("safe_cdt", x) for x in plan.budgets]
             runs += [(v, b) for v in plan.ablations if (v, b) not in runs]
             out.append(Experiment(pair, "studies", "deploy", runs=tuple(runs),
-                                  seeds=plan.study_seeds, episodes=plan.episodes))
+                                  seeds=per_ckpt(plan.study_seeds), episodes=plan.episodes,
+                                  pretrain_seeds=n_ckpt))
         out.append(Experiment(pair, "ctg", "deploy", runs=tuple((v, b) for v in ctg_variants(plan)),
                               seeds=plan.ctg_seeds, episodes=plan.intervention_episodes))
         fixed = tuple((f"fixed_ctg({r:g})", b) for r in plan.ctg_ratios)

@@ -23,7 +23,8 @@ from safecdt_jax.paper import reference as ref
 from safecdt_jax.paper import tables as T
 from safecdt_jax.paper.plan import PaperPlan, experiments
 
-PAPER_COUNTS = PaperPlan()  # the paper's protocol: the plan's defaults
+# The paper's protocol: the plan's defaults, on one pretrained checkpoint per pair.
+PAPER_COUNTS = PaperPlan(pretrain_seeds=1)
 
 
 def _claim(section: str, text: str, paper: str, ours: str | None, ok: bool | None
@@ -237,6 +238,16 @@ def _machine() -> str:
     return f"{cpu}, {os.cpu_count()} cores, {platform.system()} {platform.release()}"
 
 
+def _seeds(plan: PaperPlan, seeds: int) -> str:
+    """How a row of `seeds` runs: '15 seeds', or '5 checkpoints x 3 seeds' with several
+    pretraining seeds (each checkpoint deployed with the same deployment seeds)."""
+    n = plan.pretrain_seeds
+    if n == 1:
+        return f"{seeds} seeds"
+    return (f"{n} pretrained checkpoints x {-(-seeds // n)} deployment seeds (VR sd: the "
+            f"spread between checkpoints / across deployment seeds)")
+
+
 def _counts(plan: PaperPlan) -> str:
     """The plan's counts, with the paper's beside every one that differs."""
     skip = {"pairs", "train_baselines"}
@@ -305,17 +316,18 @@ def write_report(out: str | os.PathLike, plan: PaperPlan, summary: Mapping[str, 
         claims_table(checked),
         "",
         f"## Table 1: Safe-CDT at B = {plan.budget:g}",
-        f"({n_ep}; {plan.main_seeds} seeds on {plan.study_pair}, {plan.other_seeds} elsewhere)",
+        f"({n_ep}; {_seeds(plan, plan.main_seeds)} on {plan.study_pair}, "
+        f"{_seeds(plan, plan.other_seeds)} elsewhere)",
         "",
         texts["t1"],
         "",
         f"## Table 2: budget sensitivity on {plan.study_pair}",
-        f"(Safe-CDT, {plan.study_seeds} seeds x {n_ep})",
+        f"(Safe-CDT, {_seeds(plan, plan.study_seeds)} x {n_ep})",
         "",
         texts["t2"],
         "",
         f"## Table 3: ablations on {plan.study_pair} at B = {plan.budget:g}",
-        f"({plan.study_seeds} seeds x {n_ep}; the same sweep as Table 2)",
+        f"({_seeds(plan, plan.study_seeds)} x {n_ep}; the same sweep as Table 2)",
         "",
         texts["t3"],
         "",

@@ -39,6 +39,25 @@ def prepare_pair(pair: str, plan: PaperPlan, progress: bool = True) -> Path:
                              progress=progress)
 
 
+def prepare_seeds(pair: str, plan: PaperPlan, first: Path, progress: bool = True) -> list[Path]:
+    """The pair's `plan.pretrain_seeds` checkpoints: `first` (pretraining seed `plan.seed`,
+    from `prepare_pair`) and seeds `plan.seed + 1`.. beside it (`pretrain.seeds.default_outs`),
+    trained together in one vmapped call where missing, stale or of another run."""
+    from safecdt_jax.pretrain.checkpoint import read_meta
+    from safecdt_jax.pretrain.config import PretrainConfig
+    from safecdt_jax.pretrain.seeds import default_outs, pretrain_seeds
+
+    extra = list(range(plan.seed + 1, plan.seed + plan.pretrain_seeds))
+    if not extra:
+        return [first]
+    meta = read_meta(first)
+    config = PretrainConfig(**meta["pretrain"])
+    outs = default_outs(meta["task"], plan.preset, extra)
+    pretrain_seeds(meta["dataset"]["path"], extra, outs, preset=plan.preset, config=config,
+                   task=meta["task"], progress=progress, overwrite=True)
+    return [first, *outs]
+
+
 def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
     """What identifies a pretrained checkpoint in an experiment's spec: its task, preset,
     update count and the fingerprint of the data it was trained on (not its folder, so a
@@ -54,6 +73,15 @@ def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
     return out | spans
 
 
+def seeded_identity(ckpts: list[Path]) -> dict[str, Any]:
+    """`checkpoint_identity` of the first checkpoint, plus under `seeds` every checkpoint's
+    identity with its pretraining seed (what a multi-checkpoint experiment's spec records)."""
+    from safecdt_jax.pretrain.checkpoint import read_meta
+
+    ids = [checkpoint_identity(c) | {"seed": read_meta(c)["pretrain"]["seed"]} for c in ckpts]
+    return checkpoint_identity(ckpts[0]) | {"seeds": ids}
+
+
 def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) -> dict[str, Any]:
     """Everything that decides an experiment's result, as JSON-ready data (two runs with equal
     specs give the same result, so a finished one is reused)."""
@@ -64,8 +92,13 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
     source, target = parse_pair(e.pair)
     spec = {"format": RECORD_FORMAT, "pair": e.pair, "name": e.name, "kind": e.kind,
             "seeds": e.seeds, "episodes": e.episodes, "budget": plan.budget}
+    seeded = ckpt_id.get("seeds")
+    ckpt_id = {k: v for k, v in ckpt_id.items() if k != "seeds"}
     if e.kind == "deploy":
         task = source if e.task == "source" else target
+        if e.pretrain_seeds > 1:  # the identities of every pretraining seed's checkpoint
+            spec |= {"pretrain_seeds": e.pretrain_seeds,
+                     "checkpoints": None if seeded is None else seeded[:e.pretrain_seeds]}
         spec |= {"task": task, "env": env_version(task),
                  "runs": [[v, float(b)] for v, b in e.runs], "horizon": plan.horizon,
                  "seed": plan.seed, "stop_over_budget": True, "checkpoint": dict(ckpt_id)}
@@ -131,14 +164,15 @@ def _run_baselines(spec: Mapping[str, Any], plan: PaperPlan, progress: bool
                          spec["preset"], spec["episodes"], out=folder, progress=progress)
 
 
-def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan, ckpt: Path,
-                progress: bool) -> dict[str, Any]:
+def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan,
+                ckpts: list[Path], progress: bool) -> dict[str, Any]:
     from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.deploy.job import run_deployment
 
     cfg = DeployConfig(episodes=e.episodes, horizon=plan.horizon, budget=plan.budget,
                        lora_labels=plan.lora_labels)
-    results = run_deployment(ckpt, spec["task"], [], [], e.seeds, seed=plan.seed, cfg=cfg,
+    which = ckpts[:e.pretrain_seeds] if e.pretrain_seeds > 1 else ckpts[0]
+    results = run_deployment(which, spec["task"], [], [], e.seeds, seed=plan.seed, cfg=cfg,
                              progress=progress, runs=e.runs)
     return _compact(results)
 
@@ -154,16 +188,22 @@ def load_record(path: Path, spec: Mapping[str, Any]) -> dict[str, Any] | None:
     return record if record.get("spec") == json.loads(json.dumps(spec)) else None
 
 
-def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path, folder: Path,
+def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path | list[Path], folder: Path,
                    progress: bool = True, log: Callable[[str], None] = print,
                    ckpt_id: Mapping[str, Any] | None = None) -> dict[str, Any] | None:
     """The record of experiment `e` (`{"spec", "seconds", "finished", "results"}`), loaded from
     `folder/KEY.json` when finished with the same spec, else run and written there atomically.
     None for baselines that are neither cached nor to be trained (`plan.train_baselines`).
-    `ckpt_id`: `checkpoint_identity(ckpt)`, when the caller has it."""
+    `ckpt`: the pair's checkpoint, or its pretraining seeds' checkpoints (the first is the one
+    of single-checkpoint experiments); `ckpt_id`: `seeded_identity(ckpt)`, when the caller has
+    it."""
     from safecdt_jax.io import write_text_atomic
 
-    spec = experiment_spec(e, plan, ckpt_id or checkpoint_identity(ckpt))
+    ckpts = [Path(ckpt)] if isinstance(ckpt, str | os.PathLike) else [Path(c) for c in ckpt]
+    if e.kind == "deploy" and e.pretrain_seeds > len(ckpts):
+        raise ValueError(f"{e.key}: {e.pretrain_seeds} pretraining seeds, {len(ckpts)} "
+                         f"checkpoint(s) given")
+    spec = experiment_spec(e, plan, ckpt_id or seeded_identity(ckpts))
     path = folder / f"{e.key}.json"
     record = load_record(path, spec)
     if record is not None:
@@ -172,7 +212,7 @@ def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path, folder: Path,
     log(f"{e.key}: running ({_describe(e)})")
     start = time.perf_counter()
     if e.kind == "deploy":  # a sweep: every cooperating process computes its seeds
-        results = _run_deploy(e, spec, plan, ckpt, progress)
+        results = _run_deploy(e, spec, plan, ckpts, progress)
     else:  # not sharded: process 0 trains, the others wait and load what it cached
         results = process_zero_first(f"paper:{e.key}", lambda: _run_baselines(spec, plan,
                                                                                progress))
@@ -199,9 +239,9 @@ def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
               checkpoints: Mapping[str, str | os.PathLike] | None = None,
               log: Callable[[str], None] = print) -> dict[str, Any]:
     """Runs (or reuses) every experiment of `plan` into `out/experiments`, then writes the
-    report (`report.write_report`). `checkpoints` maps a pair to a pretrained checkpoint to
-    use instead of the cached one (tests). Returns `{"records": {key: record}, "seconds",
-    "prepare_seconds": {pair: s}}`."""
+    report (`report.write_report`). `checkpoints` maps a pair to a pretrained checkpoint (or
+    a list, one per pretraining seed) to use instead of the cached ones (tests). Returns
+    `{"records": {key: record}, "seconds", "prepare_seconds": {pair: s}}`."""
     from safecdt_jax.paper.report import write_report
 
     out = Path(out)
@@ -212,13 +252,16 @@ def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
     for pair in plan.pairs:
         t0 = time.perf_counter()
         if checkpoints is not None and pair in checkpoints:
-            ckpt = Path(checkpoints[pair])
+            given = checkpoints[pair]
+            ckpt = ([Path(given)] if isinstance(given, str | os.PathLike)
+                    else [Path(c) for c in given])
         else:
-            log(f"{pair}: source data and pretrained CDT ({plan.preset} preset)")
-            ckpt = process_zero_first(f"paper:prepare:{pair}",
-                                      lambda pair=pair: prepare_pair(pair, plan, progress))
+            log(f"{pair}: source data and {plan.pretrain_seeds} pretrained CDT(s) "
+                f"({plan.preset} preset)")
+            ckpt = process_zero_first(f"paper:prepare:{pair}", lambda pair=pair: prepare_seeds(
+                pair, plan, prepare_pair(pair, plan, progress), progress))
         prepare[pair] = time.perf_counter() - t0
-        ckpt_id = checkpoint_identity(ckpt)
+        ckpt_id = seeded_identity(ckpt)
         for e in (x for x in experiments(plan) if x.pair == pair):
             record = run_experiment(e, plan, ckpt, folder, progress, log, ckpt_id)
             if record is not None:

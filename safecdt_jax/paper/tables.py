@@ -38,14 +38,21 @@ def summary(run: Mapping[str, Any], episodes: int | None = None) -> dict[str, fl
     """Across-seed mean and std of the per-seed mean return, mean cost and VR of a run, over
     its first `episodes` episodes (all when None)."""
     cut = slice(None, episodes)
+    checkpoints = int(run.get("summary", {}).get("checkpoints", 1))
     return summarize_runs({k: np.asarray(run["metrics"][k], np.float64)[:, cut]
-                           for k in ("return", "cost", "violation")})
+                           for k in ("return", "cost", "violation")}, checkpoints)
 
 
 def _ours(s: Mapping[str, float]) -> list[str]:
+    """Reward, cost, VR (mean ± std over all seeds), the seed count (checkpoints x deployment
+    seeds when several checkpoints ran) and VR's spread between checkpoints / across
+    deployment seeds."""
+    n_ckpt = int(s.get("checkpoints", 1))
+    seeds = f"{n_ckpt}×{s['seeds'] // n_ckpt}" if n_ckpt > 1 else str(s["seeds"])
+    spread = (f"{s['vr_between_std']:.1f} / {s['vr_within_std']:.1f}" if n_ckpt > 1 else "-")
     return [cell(s["mean_return_mean"], s["mean_return_std"]),
             cell(s["mean_cost_mean"], s["mean_cost_std"]), cell(s["vr_mean"], s["vr_std"]),
-            str(s["seeds"])]
+            seeds, spread]
 
 
 def _paper(row: tuple | None) -> list[str]:
@@ -55,7 +62,8 @@ def _paper(row: tuple | None) -> list[str]:
     return [cell(row[0], row[1]), cell(row[2], row[3]), vr]
 
 
-HEAD = ["Reward", "Cost", "VR (%)", "seeds", "paper reward", "paper cost", "paper VR (%)"]
+HEAD = ["Reward", "Cost", "VR (%)", "seeds", "VR sd: ckpt / deploy", "paper reward",
+        "paper cost", "paper VR (%)"]
 
 
 def table1(records: Records, plan: PaperPlan) -> tuple[str, dict]:
@@ -64,7 +72,7 @@ def table1(records: Records, plan: PaperPlan) -> tuple[str, dict]:
     for pair in plan.pairs:
         rec = records.get(f"{pair}_main")
         if rec is None:
-            rows.append([pair, MISSING, "", "", "", *_paper(ref.TABLE1.get(pair))])
+            rows.append([pair, MISSING, "", "", "", "", *_paper(ref.TABLE1.get(pair))])
             continue
         s = data[pair] = summary(find_run(rec, "safe_cdt"))
         rows.append([pair.replace("-", "→"), *_ours(s), *_paper(ref.TABLE1.get(pair))])
@@ -111,7 +119,7 @@ def table7(records: Records, plan: PaperPlan, pairs: tuple[str, ...] | None = No
     for pair in pairs or plan.pairs:
         methods = baseline_methods(records, pair)
         if not methods:
-            rows.append([pair, "baselines", MISSING, "", "", "", "-", "-", "-"])
+            rows.append([pair, "baselines", MISSING, "", "", "", "", "-", "-", "-"])
         for m in methods:
             s = data.setdefault(pair, {})[m["algo"]] = m["summary"]
             paper = PAPER_TABLE7.get(pair, {}).get(m["algo"])

@@ -141,6 +141,7 @@ def pretrain_seeds(
     task: str | None = None,
     model_overrides: dict[str, Any] | None = None,
     progress: bool = True,
+    overwrite: bool = False,
 ) -> list[PretrainResult]:
     """Pretrains one CDT per seed of `seeds` on one data file, all in one compiled program,
     each checkpointed into its own folder (`outs`, default `default_outs`) exactly as
@@ -148,9 +149,13 @@ def pretrain_seeds(
     `evaluate` and `ensure_checkpoint` read them as single runs).
 
     Resumable: a folder that holds a checkpoint of the same run continues from its step (the
-    seeds may stand at different steps; finished ones idle), one of another run raises
-    CheckpointError naming the fields. Returns a `PretrainResult` per seed.
+    seeds may stand at different steps; finished ones idle; nothing is compiled when all are
+    finished), one of another run (or an older format) raises CheckpointError naming the
+    fields, unless `overwrite`: then it is deleted and that seed trains afresh. Returns a
+    `PretrainResult` per seed.
     """
+    import shutil
+
     from tqdm import tqdm
 
     seeds = [int(k) for k in seeds]
@@ -164,16 +169,25 @@ def pretrain_seeds(
     states, histories = [], []
     for spec in specs:
         if checkpoint_steps(spec.out):
-            diffs = config_diff(read_meta(spec.out), spec.meta)
-            if diffs:
+            try:
+                diffs = config_diff(read_meta(spec.out), spec.meta)
+            except CheckpointError as e:  # an older format
+                diffs = [str(e)]
+            if diffs and not overwrite:
                 raise CheckpointError(f"cannot resume {spec.out}: its run differs in "
                                       + "; ".join(diffs))
+            if diffs:
+                shutil.rmtree(spec.out)
+        if checkpoint_steps(spec.out):
             states.append(restore_state(spec.out, spec.cdt_cfg, spec.optim))
             histories.append(History.from_json(read_meta(spec.out).get("history", {})))
         else:
             states.append(init_train_state(stream_key(spec.cfg.seed, "init"), spec.cdt_cfg,
                                            spec.optim))
             histories.append(History.empty())
+    if all(int(st.step) >= spec.cfg.steps for st, spec in zip(states, specs, strict=True)):
+        return [PretrainResult(spec.out, st, h, read_meta(spec.out))
+                for spec, st, h in zip(specs, states, histories, strict=True)]
     t0 = time.perf_counter()
     data = first.data
     if "io_norm" in first.meta:
