@@ -1,5 +1,7 @@
 """Pareto-frontier relabelling: copies differ from their sources only by constant RTG/CTG shifts."""
 
+import dataclasses
+
 import jax
 import numpy as np
 import pytest
@@ -167,6 +169,26 @@ def test_policy_mean_labels_shift_each_episode_to_its_policy_mean():
     np.testing.assert_allclose(ctg[[0, 2], -1], [2, -3], atol=1e-6)
     for f in ("observations", "actions", "rewards", "costs", "lengths"):
         np.testing.assert_array_equal(getattr(out, f), getattr(data, f))
+
+
+def test_policy_mean_labels_read_the_means_recorded_before_filtering():
+    # Policy 7 is careful: of its 4 rollouts (costs 0, 0, 0, 8: mean 2) a filter kept only the
+    # costly one. Labelled with the recorded mean (2), not the kept episode's 8.
+    costs = np.zeros((2, T), np.float32)
+    costs[0, :8] = 1.0
+    costs[1, :4] = 1.0
+    rewards = np.full((2, T), 0.1, np.float32)
+    info = {"snapshot": np.array([7, 9]), "policy_cost": np.array([2.0, 4.0], np.float32),
+            "policy_return": np.array([1.5, 1.0], np.float32)}
+    data = make_dataset(np.zeros((2, T, 3)), np.zeros((2, T, 2)), rewards, costs,
+                        np.full(2, T), episode_info=info)
+    out = policy_mean_labels(data)
+    np.testing.assert_allclose(episode_costs(out), [2, 4], atol=1e-6)
+    np.testing.assert_allclose(episode_returns(out), [1.5, 1.0], atol=1e-5)
+    grouped = dataclasses.replace(data, episode_info={"run": info["snapshot"], **{
+        k: v for k, v in info.items() if k != "snapshot"}})  # other groups: their own means
+    np.testing.assert_allclose(episode_costs(policy_mean_labels(grouped, key="run")), [8, 4],
+                               atol=1e-6)
 
 
 def test_policy_mean_labels_name_the_missing_key():

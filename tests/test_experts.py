@@ -234,6 +234,12 @@ def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
     assert len(snapshots) == 4  # 2 runs x 2 kept rounds, with provenance
     assert {s["seed"] for s in snapshots} == {0} and snapshots[0]["schedule"][0] == 5.0
     assert set(np.unique(data.episode_info["snapshot"])) <= {0.0, 1.0, 2.0, 3.0}
+    # Each episode carries its policy's mean over all its rollouts (3 per snapshot before the
+    # filter for --episodes 6), the same for every episode of a snapshot.
+    snap, cost = data.episode_info["snapshot"], data.episode_info["policy_cost"]
+    for k in np.unique(snap):
+        assert np.ptp(cost[snap == k]) == 0
+    assert data.attrs["expert_collector_version"] == 3
 
 
 @pytest.mark.parametrize("args,message", [

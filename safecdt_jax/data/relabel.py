@@ -183,7 +183,10 @@ def policy_mean_labels(data: Dataset, key: str = "snapshot") -> Dataset:
     policies are known), the token names how the episode was driven. Within an episode the
     tokens still fall by the realised rewards and costs, as in deployment, so a lucky episode
     ends with budget left and an unlucky one below zero. Only `return_offset` / `cost_offset`
-    change. Raises ValueError when `episode_info` has no `key`.
+    change. The policy's mean is `episode_info['policy_return']` / `['policy_cost']` where the
+    collector recorded it (over all the policy's rollouts, before any filter dropped some),
+    else the mean over the episodes of `key` present here. Raises ValueError when
+    `episode_info` has no `key`.
     """
     if key not in data.episode_info:
         raise ValueError(f"policy-mean labels need episode_info[{key!r}] (the behaviour policy "
@@ -191,10 +194,16 @@ def policy_mean_labels(data: Dataset, key: str = "snapshot") -> Dataset:
     groups = np.unique(np.asarray(data.episode_info[key]), return_inverse=True)[1].reshape(-1)
     real = np.asarray(data.lengths) > 0
     count = np.maximum(np.bincount(groups, real.astype(np.float64)), 1.0)
+    recorded = [data.episode_info.get(f"policy_{k}") if key == "snapshot" else None
+                for k in ("return", "cost")]
     shifts = []
-    for per_episode in (episode_returns(data), episode_costs(data)):
-        mean = np.bincount(groups, np.where(real, per_episode, 0.0)) / count
-        shifts.append(np.where(real, mean[groups] - per_episode, 0.0))
+    for per_episode, known in zip((episode_returns(data), episode_costs(data)), recorded,
+                                  strict=True):
+        if known is not None:
+            mean_of = np.asarray(known, np.float64).reshape(-1)
+        else:
+            mean_of = (np.bincount(groups, np.where(real, per_episode, 0.0)) / count)[groups]
+        shifts.append(np.where(real, mean_of - per_episode, 0.0))
     return dataclasses.replace(
         data,
         return_offset=(np.asarray(data.return_offset, np.float64) + shifts[0]).astype(np.float32),

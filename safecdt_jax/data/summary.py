@@ -80,7 +80,7 @@ def summarize_dataset(
     groups = data.episode_info.get("snapshot")
     out["cost_share_by_snapshot"] = between_group_share(costs, groups)
     out["return_share_by_snapshot"] = between_group_share(returns, groups)
-    out |= policy_cost_bands(costs, groups)
+    out |= policy_cost_bands(costs, groups, data.episode_info.get("policy_cost"))
     if png_path is not None:
         _scatter(png_path, costs, returns, budget, str(data.attrs.get("task", "")))
     return out
@@ -95,15 +95,21 @@ def _band_name(lo: float, hi: float) -> str:
     return f"<={hi:g}" if lo == 0 else (f">{lo:g}" if hi == float("inf") else f"{lo:g}-{hi:g}")
 
 
-def policy_cost_bands(costs: np.ndarray, groups: np.ndarray | None) -> dict[str, Any]:
+def policy_cost_bands(costs: np.ndarray, groups: np.ndarray | None,
+                      recorded: np.ndarray | None = None) -> dict[str, Any]:
     """The range of the per-policy mean episode costs (raw units) and the share of episodes
     per band of their policy's mean (`POLICY_COST_BANDS`; a mean of exactly 5 is '<=5').
+    The means are `recorded` (per episode, its policy's mean over all its rollouts, as the
+    expert collector stores it) when given, else the means over the episodes here.
     Keys policy_cost_min, policy_cost_max, policy_cost_shares; None each without groups."""
     if groups is None:
         return {"policy_cost_min": None, "policy_cost_max": None, "policy_cost_shares": None}
     _, idx, counts = np.unique(np.asarray(groups), return_inverse=True, return_counts=True)
     idx = idx.reshape(-1)
     means = np.bincount(idx, weights=np.asarray(costs, np.float64)) / counts
+    if recorded is not None:  # every episode of a policy carries the same recorded mean
+        recorded = np.asarray(recorded, np.float64).reshape(-1)
+        means = np.bincount(idx, weights=recorded) / counts
     per_episode = means[idx]
     shares = {_band_name(lo, hi): float(np.mean((per_episode > lo) & (per_episode <= hi))
                                         if lo > 0 else np.mean(per_episode <= hi))

@@ -41,7 +41,9 @@ from safecdt_jax.experts.ppo_lag import make_train
 from safecdt_jax.paths import DEFAULT_ACTIONS
 
 SNAPSHOT_DIR = Path(__file__).parent / "snapshots"
-EXPERT_COLLECTOR_VERSION = 2  # 2: executed actions, unless the 'actions' attribute says otherwise
+# 2: executed actions, unless the 'actions' attribute says otherwise; 3: each episode carries
+# its policy's mean return and cost over all of the policy's rollouts, before the filter.
+EXPERT_COLLECTOR_VERSION = 3
 
 # How an episode's actions are recorded: 'sampled' (the default, `paths.DEFAULT_ACTIONS`: the
 # policy's Gaussian sample clipped to the action box [-1, 1], DSRL's convention) or 'executed'
@@ -123,7 +125,11 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
     """`per_snapshot` stochastic episodes of every snapshot in file `path`, as a `Dataset`,
     actions recorded as `actions` says (`ACTION_RECORDINGS`; attrs 'actions').
 
-    episode_info: 'snapshot' (index in the file), 'run', 'round'. attrs: task, env params,
+    episode_info: 'snapshot' (index in the file), 'run', 'round', and 'policy_return' /
+    'policy_cost': the mean episode return and cost of that snapshot over all its episodes
+    here (raw units), its expected outcome, kept with each episode so that a filter that drops
+    some episodes (the grid filter keeps few of a careful policy's many near-zero-cost ones)
+    does not change what its episodes are labelled with (`policy_mean_labels`). attrs: task, env params,
     physics version, the expert config, the snapshot file's name and SHA-256, and per snapshot
     its schedule, seed and round (`snapshots`). Episodes run `horizon` steps (default: the
     episode length the experts trained on, the task's time limit unless shortened).
@@ -147,7 +153,11 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
     keys = jax.random.split(key, which.size)
     arrays = run_episodes(_rollout_fn(cfg, t, actions), keys, inputs, env.observation_size,
                           env.action_size, chunk, progress)
+    totals = {k: np.asarray(arrays[k], np.float64).sum(axis=1) for k in ("rewards", "costs")}
+    means = {k: np.bincount(which, v) / per_snapshot for k, v in totals.items()}
     info = {"snapshot": which.astype(np.float32),
+            "policy_return": means["rewards"][which].astype(np.float32),
+            "policy_cost": means["costs"][which].astype(np.float32),
             "run": np.asarray([meta["snapshots"][i]["run"] for i in which], np.float32),
             "round": np.asarray([meta["snapshots"][i]["round"] for i in which], np.float32)}
     attrs = {"task": cfg.task, "env_params": env_params_attrs(cfg.task),

@@ -61,13 +61,18 @@ def prepare_seeds(pair: str, plan: PaperPlan, first: Path, progress: bool = True
 def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
     """What identifies a pretrained checkpoint in an experiment's spec: its task, preset,
     update count and the fingerprint of the data it was trained on (not its folder, so a
-    clone whose cache lives elsewhere reuses the committed experiments), and the spans of its
-    token edges."""
+    clone whose cache lives elsewhere reuses the committed experiments), the spans of its
+    token edges, and a digest of its whole model config (its token edges are fitted to the
+    data's labels, so relabelled data give another model from the same episodes)."""
+    import hashlib
+
     from safecdt_jax.pretrain.checkpoint import read_meta
 
     meta = read_meta(ckpt)
+    model = json.dumps(meta["model"], sort_keys=True).encode()
     out = {"task": meta["task"], "preset": meta["preset"], "step": int(meta["step"]),
-           "data": meta["dataset"]["fingerprint"]}
+           "data": meta["dataset"]["fingerprint"],
+           "model": hashlib.blake2b(model, digest_size=8).hexdigest()}
     pretrain = meta.get("pretrain", {})
     spans = {k: pretrain[k] for k in ("return_span", "cost_span") if pretrain.get(k)}
     return out | spans
