@@ -205,3 +205,25 @@ def test_quick_without_cached_baselines_skips_them(tiny_run, tmp_path, monkeypat
     e = Experiment("PC1-PC2", "baselines", "baselines", seeds=3, episodes=20)
     assert run_experiment(e, plan, ckpt, tmp_path, progress=False, log=logs.append) is None
     assert "skipped" in logs[-1] and not (tmp_path / "PC1-PC2_baselines.json").exists()
+
+
+def test_prepare_seeds_trains_the_other_pretraining_seeds_beside_the_first(tiny_run, tmp_path,
+                                                                          monkeypatch):
+    from safecdt_jax.pretrain import read_meta
+    from safecdt_jax.paper.run import prepare_seeds
+
+    _, ckpt, _ = tiny_run
+    monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path))
+    plan = quick_plan(**TINY, pretrain_seeds=3)
+    got = prepare_seeds("PC1-PC2", plan, ckpt, progress=False)
+    assert got[0] == ckpt and [p.name for p in got[1:]] == ["PointCircle1-tiny-seed1",
+                                                             "PointCircle1-tiny-seed2"]
+    first = read_meta(ckpt)
+    for k, path in enumerate(got[1:], start=1):
+        meta = read_meta(path)
+        assert meta["pretrain"] == {**first["pretrain"], "seed": k}
+        assert meta["model"] == first["model"] and meta["step"] == first["step"]
+    stamp = (got[1] / str(first["step"])).stat().st_mtime_ns
+    assert prepare_seeds("PC1-PC2", plan, ckpt, progress=False) == got  # reused as they are
+    assert (got[1] / str(first["step"])).stat().st_mtime_ns == stamp
+    assert prepare_seeds("PC1-PC2", quick_plan(**TINY), ckpt) == [ckpt]

@@ -43,18 +43,17 @@ def prepare_seeds(pair: str, plan: PaperPlan, first: Path, progress: bool = True
     """The pair's `plan.pretrain_seeds` checkpoints: `first` (pretraining seed `plan.seed`,
     from `prepare_pair`) and seeds `plan.seed + 1`.. beside it (`pretrain.seeds.default_outs`),
     trained together in one vmapped call where missing, stale or of another run."""
-    from safecdt_jax.pretrain.checkpoint import read_meta
-    from safecdt_jax.pretrain.config import PretrainConfig
+    from safecdt_jax.pretrain.checkpoint import configs_from_meta, read_meta
     from safecdt_jax.pretrain.seeds import default_outs, pretrain_seeds
 
     extra = list(range(plan.seed + 1, plan.seed + plan.pretrain_seeds))
     if not extra:
         return [first]
     meta = read_meta(first)
-    config = PretrainConfig(**meta["pretrain"])
+    _, optim, config = configs_from_meta(meta)
     outs = default_outs(meta["task"], plan.preset, extra)
     pretrain_seeds(meta["dataset"]["path"], extra, outs, preset=plan.preset, config=config,
-                   task=meta["task"], progress=progress, overwrite=True)
+                   optim=optim, task=meta["task"], progress=progress, overwrite=True)
     return [first, *outs]
 
 
