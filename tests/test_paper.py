@@ -209,8 +209,8 @@ def test_quick_without_cached_baselines_skips_them(tiny_run, tmp_path, monkeypat
 
 def test_prepare_seeds_trains_the_other_pretraining_seeds_beside_the_first(tiny_run, tmp_path,
                                                                           monkeypatch):
-    from safecdt_jax.pretrain import read_meta
     from safecdt_jax.paper.run import prepare_seeds
+    from safecdt_jax.pretrain import read_meta
 
     _, ckpt, _ = tiny_run
     monkeypatch.setenv("SAFECDT_CACHE", str(tmp_path))
