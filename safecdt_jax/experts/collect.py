@@ -130,9 +130,10 @@ def rollout_snapshots(key: jax.Array, path: str | os.PathLike, per_snapshot: int
     here (raw units), its expected outcome, kept with each episode so that a filter that drops
     some episodes (the grid filter keeps few of a careful policy's many near-zero-cost ones)
     does not change what its episodes are labelled with (`policy_mean_labels`). attrs: task,
-    env params, physics version, the expert config, the snapshot file's name and SHA-256, and per snapshot
-    its schedule, seed and round (`snapshots`). Episodes run `horizon` steps (default: the
-    episode length the experts trained on, the task's time limit unless shortened).
+    env params, physics version, the expert config, the snapshot file's name and SHA-256, and
+    per snapshot its schedule, seed and round (`snapshots`). Episodes run `horizon` steps
+    (default: the episode length the experts trained on, the task's time limit unless
+    shortened).
     ValueError when the file's physics version is not the current one.
     """
     snaps, meta = load_snapshots(path)
