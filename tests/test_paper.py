@@ -35,9 +35,10 @@ def test_plan_rejects_bad_values_naming_the_field():
 def test_experiments_of_the_default_plan():
     exps = {e.key: e for e in experiments(PaperPlan())}
     assert len(exps) == 3 * 4 + 1  # main, ctg, source_ctg, baselines per pair; studies once
-    # Rows of 15 and 3 runs: 5 pretrained checkpoints x 3 and x 1 deployment seeds.
-    assert (exps["CG1-CG2_main"].seeds, exps["CG1-CG2_main"].pretrain_seeds) == (3, 5)
+    # Rows of 15 and 3 runs: 3 pretrained checkpoints x 5 and x 1 deployment seeds.
+    assert (exps["CG1-CG2_main"].seeds, exps["CG1-CG2_main"].pretrain_seeds) == (5, 3)
     assert (exps["CC1-CC2_main"].seeds, exps["CG1-CG2_studies"].seeds) == (1, 1)
+    assert experiments(PaperPlan(pretrain_seeds=5))[0].seeds == 3  # 5 x 3
     assert exps["CG1-CG2_ctg"].pretrain_seeds == 1 and exps["CG1-CG2_ctg"].seeds == 5
     one = {e.key: e for e in experiments(PaperPlan(pretrain_seeds=1))}
     assert one["CG1-CG2_main"].seeds == 15 and one["CC1-CC2_main"].seeds == 3

@@ -31,7 +31,7 @@ def paper(
         = True,
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     pretrain_seeds: Annotated[int | None, typer.Option(
-        min=1, help="Pretrained checkpoints per pair behind Tables 1-3 (default 5; 1 with "
+        min=1, help="Pretrained checkpoints per pair behind Tables 1-3 (default 3; 1 with "
                     "--quick): each row runs as checkpoints x deployment seeds.")] = None,
     lora_labels: Annotated[str, typer.Option(
         help="What the LoRA finetuning windows' tokens read: stage (the mean outcome of the "

@@ -29,7 +29,7 @@ class PaperPlan:
     Attributes:
         pairs: deployment pairs to run (the paper's three).
         budget: cost budget B of every table but Table 2 (30, cost units).
-        pretrain_seeds: pretrained checkpoints per pair behind Tables 1-3 (5; the paper
+        pretrain_seeds: pretrained checkpoints per pair behind Tables 1-3 (3; the paper
             reports one): a row of N seeds runs as P checkpoints (pretraining seeds
             `seed`..`seed + P - 1`, trained in one vmapped call) x ceil(N / P) deployment
             seeds, the same deployment seeds on every checkpoint, and reports the spread
@@ -65,7 +65,7 @@ class PaperPlan:
 
     pairs: tuple[str, ...] = ("CG1-CG2", "CC1-CC2", "PC1-PC2")
     budget: float = 30.0
-    pretrain_seeds: int = 5
+    pretrain_seeds: int = 3
     main_seeds: int = 15
     other_seeds: int = 3
     study_pair: str = "CG1-CG2"
