@@ -183,3 +183,37 @@ def test_jit_equals_no_jit_and_same_key_same_bits():
     assert not np.array_equal(b.start, d.start) or not np.array_equal(
         b.episode_index, d.episode_index
     )
+
+
+def test_an_episode_view_with_padding_draws_the_copied_data_windows():
+    """Episodes as a view (`source`: the row each reads) with trailing empty padding give the
+    windows of the same episodes copied out, bit for bit (what `pretrain.seeds` relies on)."""
+    from typing import NamedTuple
+
+    class View(NamedTuple):
+        observations: np.ndarray
+        actions: np.ndarray
+        rewards: np.ndarray
+        costs: np.ndarray
+        lengths: np.ndarray
+        return_offset: np.ndarray
+        cost_offset: np.ndarray
+        source: np.ndarray
+
+    ds = hand_data()
+    order = np.array([1, 0, 1])  # episode 1 twice (a relabelled copy), shifted labels
+    offsets = (np.array([0.0, 0.0, 5.0], np.float32), np.array([0.0, 0.0, 2.0], np.float32))
+    copied = dataclasses.replace(
+        ds, **{k: getattr(ds, k)[order] for k in ("observations", "actions", "rewards",
+                                                   "costs", "lengths")},
+        return_offset=offsets[0], cost_offset=offsets[1])
+    pad = lambda x: np.concatenate([x, np.zeros(2, x.dtype)])  # two empty episodes
+    view = View(ds.observations, ds.actions, ds.rewards, ds.costs,
+                pad(np.asarray(ds.lengths)[order]), pad(offsets[0]), pad(offsets[1]),
+                pad(order.astype(np.int32)))
+    weights = np.array([0.5, 0.2, 0.3], np.float32)
+    a = sample_jit(jax.random.key(4), copied, batch=64, K=3, weights=weights)
+    b = sample_jit(jax.random.key(4), view, batch=64, K=3, weights=pad(weights))
+    for name, x, y in zip(a._fields, a, b, strict=True):
+        np.testing.assert_array_equal(x, y, err_msg=name)
+    assert set(np.asarray(b.episode_index).tolist()) == {0, 1, 2}  # never the padding

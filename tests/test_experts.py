@@ -360,3 +360,35 @@ def test_warm_started_experts_append_to_a_snapshot_file(tmp_path):
         TINY.replace(hidden=(8,)), [CostSchedule(5, 5)], [0]), keep=1)
     with pytest.raises(ValueError, match=r"differs from .* in hidden"):
         merge_snapshots(tmp_path / "m.npz", snaps, wide)
+
+
+def test_rollouts_carry_each_snapshots_mean_over_all_its_episodes():
+    from safecdt_jax.data.windows import episode_costs, episode_returns
+    from safecdt_jax.experts.collect import rollout_snapshots, snapshot_path
+
+    raw = rollout_snapshots(jax.random.PRNGKey(1), snapshot_path("PointCircle1"), 3,
+                            horizon=20)
+    snap = np.asarray(raw.episode_info["snapshot"]).astype(int)
+    costs, returns = episode_costs(raw), episode_returns(raw)
+    for k in (0, 5, snap.max()):
+        mine = snap == k
+        assert mine.sum() == 3
+        np.testing.assert_allclose(raw.episode_info["policy_cost"][mine], costs[mine].mean(),
+                                   rtol=1e-6)
+        np.testing.assert_allclose(raw.episode_info["policy_return"][mine],
+                                   returns[mine].mean(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--set", "steps=10"], "--set steps: use the --steps option"),
+    (["--set", "pid_kx=1"], "expected FIELD=VALUE with a field of ExpertConfig"),
+    (["--warm-start", "nowhere.npz"], "expected FILE.npz:INDEX"),
+])
+def test_expert_cli_settings_errors_are_one_line(args, message):
+    from typer.testing import CliRunner
+
+    from safecdt_jax.cli import app
+
+    res = CliRunner().invoke(app, ["expert", "--task", "PointCircle1", "--preset", "tiny",
+                                   *args])
+    assert res.exit_code == 1 and message in res.output and "Traceback" not in res.output

@@ -62,6 +62,9 @@ def expert_cmd(
         schedules = [CostSchedule.parse(t) for t in cost_limit.split(",")]
         given = {"num_envs": num_envs, "minibatches": minibatches}
         overrides = field_overrides(settings or [], ExpertConfig)
+        own = sorted({"task", "steps", "num_envs", "minibatches"} & set(overrides))
+        if own:
+            raise ValueError(f"--set {own[0]}: use the --{own[0].replace('_', '-')} option")
         cfg = expert_preset(preset, **(overrides | dict(task=task, steps=steps) | {
             k: v for k, v in given.items() if v is not None}))
         start_from = None if warm_start is None else _snapshot_at(warm_start, cfg)
@@ -98,7 +101,10 @@ def expert_cmd(
                    f"{c[-tail:].mean():.1f}")
     if snapshots is not None:
         if append and snapshots.exists():
-            fresh = write_snapshots(out / "snapshots.npz", result, keep)
+            fresh = out / "snapshots-new.npz"
+            if fresh.resolve() == snapshots.resolve():
+                fail(f"--append: --snapshots {snapshots} is this run's own scratch file")
+            write_snapshots(fresh, result, keep)
             try:
                 merge_snapshots(snapshots, snapshots, fresh)
             except ValueError as e:

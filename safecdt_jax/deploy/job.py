@@ -71,9 +71,11 @@ def _stacked_policies(ckpts: Sequence[str | os.PathLike], target: str, cfg, firs
     differs from the first (`first`, its policy) in model config or reference return (they
     must be pretraining seeds of one run on one data set)."""
     params = [first.params]
+    data = first.meta["dataset"]["fingerprint"]
     for path in ckpts[1:]:
         _, _, policy, _, ref = load_deployment(path, target, cfg, stochastic_actions)
-        if policy.cfg != first.cfg or ref != r_ref:
+        if (policy.cfg != first.cfg or ref != r_ref
+                or policy.meta["dataset"]["fingerprint"] != data):
             raise ValueError(f"{os.fspath(path)}: another model config or data than "
                              f"{os.fspath(ckpts[0])}; checkpoints deployed together must be "
                              f"pretraining seeds of one run")

@@ -52,8 +52,12 @@ def _meta(cfg: ExpertConfig, schedules, seeds, warm_start=None) -> dict[str, Any
     meta = {"format": 1, "expert": cfg.to_json(),
             "schedules": [s.as_array().tolist() for s in schedules], "seeds": list(seeds)}
     if warm_start is not None:  # a resumed run must start from the same snapshot
-        leaves = jax.tree.leaves(warm_start)
-        meta["warm_start"] = float(sum(np.abs(np.asarray(x, np.float64)).sum() for x in leaves))
+        import hashlib
+
+        digest = hashlib.blake2b(digest_size=16)
+        for leaf in jax.tree.leaves(warm_start):
+            digest.update(np.ascontiguousarray(leaf, np.float32).tobytes())
+        meta["warm_start"] = digest.hexdigest()
     return meta
 
 
@@ -137,8 +141,8 @@ def train_experts(cfg: ExpertConfig, schedules: Sequence[CostSchedule], seeds: S
                 saved = mngr.restore(steps[-1], args=ocp.args.Composite(
                     meta=ocp.args.JsonRestore()))["meta"]
                 if saved != meta:
-                    raise ValueError(f"{out}: the saved run has another config, schedules or "
-                                     f"seeds than requested; cannot resume it")
+                    raise ValueError(f"{out}: the saved run has another config, schedules, "
+                                     f"seeds or warm start than requested; cannot resume it")
                 runner = mngr.restore(steps[-1], args=ocp.args.Composite(
                     state=ocp.args.StandardRestore(runner)))["state"]
             snap_def = jax.tree.structure(jax.eval_shape(

@@ -26,23 +26,31 @@ from safecdt_jax.paper.plan import Experiment, PaperPlan, experiments
 RECORD_FORMAT = 1
 
 
+def source_data(pair: str, plan: PaperPlan) -> Path:
+    """The cached expert data of `pair`'s source task, collected first if missing or stale."""
+    from safecdt_jax.experts.collect import ensure_source_data
+    from safecdt_jax.pairs import parse_pair
+
+    return ensure_source_data(parse_pair(pair)[0], seed=plan.seed)
+
+
 def prepare_pair(pair: str, plan: PaperPlan, progress: bool = True) -> Path:
     """The pretrained CDT of `pair`'s source task (plan.preset), as `safecdt-jax run` makes it:
     the cached expert data and checkpoint reused, collected or trained if missing."""
-    from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pairs import parse_pair
     from safecdt_jax.pretrain.run import ensure_checkpoint
 
     source, _ = parse_pair(pair)
-    data = ensure_source_data(source, seed=plan.seed)
-    return ensure_checkpoint(data, source, plan.preset, seed=plan.seed, overwrite=True,
-                             progress=progress)
+    return ensure_checkpoint(source_data(pair, plan), source, plan.preset, seed=plan.seed,
+                             overwrite=True, progress=progress)
 
 
-def prepare_seeds(pair: str, plan: PaperPlan, first: Path, progress: bool = True) -> list[Path]:
+def prepare_seeds(pair: str, plan: PaperPlan, first: Path, progress: bool = True,
+                  data: str | os.PathLike | None = None) -> list[Path]:
     """The pair's `plan.pretrain_seeds` checkpoints: `first` (pretraining seed `plan.seed`,
     from `prepare_pair`) and seeds `plan.seed + 1`.. beside it (`pretrain.seeds.default_outs`),
-    trained together in one vmapped call where missing, stale or of another run."""
+    trained together in one vmapped call on `data` (default: the file `first` names) where
+    missing, stale or of another run."""
     from safecdt_jax.pretrain.checkpoint import configs_from_meta, read_meta
     from safecdt_jax.pretrain.seeds import default_outs, pretrain_seeds
 
@@ -52,7 +60,10 @@ def prepare_seeds(pair: str, plan: PaperPlan, first: Path, progress: bool = True
     meta = read_meta(first)
     _, optim, config = configs_from_meta(meta)
     outs = default_outs(meta["task"], plan.preset, extra)
-    pretrain_seeds(meta["dataset"]["path"], extra, outs, preset=plan.preset, config=config,
+    # The data `first` trained on, where the cache has it now (the path in its metadata is
+    # where it was then); `pretrain_seeds` checks the fingerprint through the configs.
+    data = data or meta["dataset"]["path"]
+    pretrain_seeds(data, extra, outs, preset=plan.preset, config=config,
                    optim=optim, task=meta["task"], progress=progress, overwrite=True)
     return [first, *outs]
 
@@ -263,7 +274,8 @@ def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
             log(f"{pair}: source data and {plan.pretrain_seeds} pretrained CDT(s) "
                 f"({plan.preset} preset)")
             ckpt = process_zero_first(f"paper:prepare:{pair}", lambda pair=pair: prepare_seeds(
-                pair, plan, prepare_pair(pair, plan, progress), progress))
+                pair, plan, prepare_pair(pair, plan, progress), progress,
+                data=source_data(pair, plan)))
         prepare[pair] = time.perf_counter() - t0
         ckpt_id = seeded_identity(ckpt)
         for e in (x for x in experiments(plan) if x.pair == pair):

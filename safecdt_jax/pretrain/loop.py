@@ -154,7 +154,8 @@ def chunk_body(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig,
         def body(state, _):
             active = state.step < stop
             # cond, not where: a skipped update costs nothing in one run (vmapped over seeds
-            # it becomes a select, and only a run's last chunk has skipped updates).
+            # it becomes a select: a seed that has finished, or resumed further than the
+            # others, still computes its updates, and they are dropped).
             state, aux = jax.lax.cond(
                 active, lambda s: update(s, key, data, weights), lambda s: (s, idle), state
             )

@@ -5,9 +5,11 @@ A seed decides three things of a run: the initial parameters, the Pareto-relabel
 step arrays (observations, actions, rewards, costs) are the same for all seeds, so they are
 held once; each seed gets its own episode list as a view (`SeedData.source`: the row each of
 its episodes reads), its lengths, label offsets and sampling weights, padded with empty
-episodes to a common count. Every seed draws exactly the windows its single run draws
-(`sample_windows`' inverse-CDF draw ignores trailing zero weights), so a vmapped run equals
-the single runs up to the batched matmuls' float summation order.
+episodes to a common count (in practice every seed gets as many copies: their number depends
+on the grid filter's cell counts, not on the draw). Every seed draws the windows its single
+run draws (`sample_windows`' inverse-CDF draw ignores trailing zero weights, but for a uniform
+draw that rounds onto the very top of the CDF, about 2^-24 per window), so a vmapped run
+equals the single runs up to the batched matmuls' float summation order.
 
     results = pretrain_seeds("CarGoal1.hdf5", [0, 1, 2], preset="cpu")   # 3 checkpoints
 """
@@ -46,7 +48,7 @@ from safecdt_jax.pretrain.loop import (
     stream_key,
 )
 from safecdt_jax.pretrain.normalize import IONorm, normalise_dataset
-from safecdt_jax.pretrain.run import PretrainResult, RunSpec, plan, save_run
+from safecdt_jax.pretrain.run import PretrainResult, RunSpec, plan, save_run, tensorboard_dir
 
 
 class SeedData(NamedTuple):
@@ -97,12 +99,17 @@ def prepare_seeds(data: Dataset, cfg: PretrainConfig,
             [len(x[0]) - n for x in lists])
 
 
-@functools.lru_cache(maxsize=4)
 def make_seeds_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig):
     """Jitted `train_chunk(states, keys, seed_data, weights, stop) -> (states, metrics)`: the
     single run's chunk (`loop.chunk_body`) vmapped over seeds (states, keys, episode lists and
-    weights with a leading [S] axis; metrics [S]). The states are donated."""
-    body = chunk_body(cdt_cfg, optim, program_config(cfg))
+    weights with a leading [S] axis; metrics [S]). The states are donated. Cached on the fields
+    that shape the program (`loop.program_config`), as the single run's chunk is."""
+    return _seeds_chunk(cdt_cfg, optim, program_config(cfg))
+
+
+@functools.lru_cache(maxsize=4)
+def _seeds_chunk(cdt_cfg: CDTConfig, optim: OptimConfig, cfg: PretrainConfig):
+    body = chunk_body(cdt_cfg, optim, cfg)
     return jax.jit(jax.vmap(body, in_axes=(0, 0, _SEED_AXES, 0, None)), donate_argnums=0)
 
 
@@ -185,6 +192,7 @@ def pretrain_seeds(
             states.append(init_train_state(stream_key(spec.cfg.seed, "init"), spec.cdt_cfg,
                                            spec.optim))
             histories.append(History.empty())
+            shutil.rmtree(tensorboard_dir(spec.out), ignore_errors=True)  # old curves
     if all(int(st.step) >= spec.cfg.steps for st, spec in zip(states, specs, strict=True)):
         return [PretrainResult(spec.out, st, h, read_meta(spec.out))
                 for spec, st, h in zip(specs, states, histories, strict=True)]
