@@ -177,7 +177,7 @@ def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, mo
     assert np.asarray(main["results"]["runs"][0]["metrics"]["cost"]).shape == (2, 10)
     assert [c["seed"] for c in main["spec"]["checkpoints"]] == [0, 1]
     assert main["results"]["deploy_seeds"] == 1 and "| PC1→PC2 |" in report
-    assert "2 pretrained checkpoints x 1 deployment seeds" in report and "| 2×1 |" in report
+    assert "2 pretrained checkpoints x 1 deployment seed " in report and "| 2×1 |" in report
     ctg = json.loads((out / "experiments" / "PC1-PC2_ctg.json").read_text())
     assert "checkpoints" not in ctg["spec"] and "checkpoints" not in ctg["results"]
 

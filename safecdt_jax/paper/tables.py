@@ -50,9 +50,10 @@ def _ours(s: Mapping[str, float]) -> list[str]:
     n_ckpt = int(s.get("checkpoints", 1))
     per_ckpt = s["seeds"] // n_ckpt
     seeds = f"{n_ckpt}×{per_ckpt}" if n_ckpt > 1 else str(s["seeds"])
-    # With one deployment seed per checkpoint there is no spread across deployment seeds.
-    within = f"{s['vr_within_std']:.1f}" if per_ckpt > 1 else "-"
-    spread = f"{s['vr_between_std']:.1f} / {within}" if n_ckpt > 1 else "-"
+    spread = "-"
+    if n_ckpt > 1:  # with one deployment seed per checkpoint there is no spread across them
+        within = f"{s['vr_within_std']:.1f}" if per_ckpt > 1 else "-"
+        spread = f"{s['vr_between_std']:.1f} / {within}"
     return [cell(s["mean_return_mean"], s["mean_return_std"]),
             cell(s["mean_cost_mean"], s["mean_cost_std"]), cell(s["vr_mean"], s["vr_std"]),
             seeds, spread]
