@@ -16,6 +16,40 @@ jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
 jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
+def _atomic_cache_writes() -> None:
+    """JAX (0.10) writes a persistent-cache entry in place, so a test process reading the entry
+    another one is still writing can get half a file, and deserialising it aborts the process
+    (seen once as an xdist worker's "Fatal Python error: Aborted" in the cache read). Write
+    each entry to a temporary file and rename it into place instead. A private JAX API: if it
+    moves, the tests run with JAX's own writes."""
+    try:
+        from jax._src import lru_cache
+    except ImportError:
+        return
+    cache_cls = getattr(lru_cache, "LRUCache", None)
+    suffix = getattr(lru_cache, "_CACHE_SUFFIX", None)
+    if cache_cls is None or suffix is None or getattr(cache_cls, "_atomic_put", False):
+        return
+    original = cache_cls.put
+
+    def put(self, key: str, value: bytes) -> None:
+        if getattr(self, "eviction_enabled", True) or not key:
+            return original(self, key, value)
+        final = self.path / f"{key}{suffix}"
+        if final.exists():
+            return None
+        tmp = self.path / f".{key}.{os.getpid()}.tmp"
+        tmp.write_bytes(value)
+        os.replace(tmp, final)
+        return None
+
+    cache_cls.put = put
+    cache_cls._atomic_put = True
+
+
+_atomic_cache_writes()
+
+
 @pytest.fixture(scope="session")
 def tiny_run(tmp_path_factory):
     """(data path, checkpoint path, folder): a 4-episode PointCircle1 data set of the committed
