@@ -168,9 +168,12 @@ def pretrain_seeds(
     seeds = [int(k) for k in seeds]
     if not seeds or len(set(seeds)) != len(seeds):
         raise ValueError(f"pretrain_seeds: give distinct seeds, got {seeds}")
-    probe = plan(data_path, None, preset=preset, config=config, optim=optim, task=task,
-                 model_overrides=model_overrides) if outs is None else None
-    outs = default_outs(probe.task, preset, seeds) if outs is None else list(outs)
+    if outs is None:  # the task as `plan` names it, from the file's attributes alone
+        from safecdt_jax.data.collect import file_attrs
+
+        name = task or (file_attrs(data_path) or {}).get("task") or Path(data_path).stem
+        outs = default_outs(str(name), preset, seeds)
+    outs = list(outs)
     specs = _specs(data_path, seeds, outs, preset, config, optim, task, model_overrides)
     first = specs[0]
     states, histories = [], []
