@@ -34,15 +34,24 @@ def source_data(pair: str, plan: PaperPlan) -> Path:
     return ensure_source_data(parse_pair(pair)[0], seed=plan.seed)
 
 
-def prepare_pair(pair: str, plan: PaperPlan, progress: bool = True) -> Path:
+def prepare_pair(pair: str, plan: PaperPlan, progress: bool = True,
+                 data: str | os.PathLike | None = None) -> Path:
     """The pretrained CDT of `pair`'s source task (plan.preset), as `safecdt-jax run` makes it:
-    the cached expert data and checkpoint reused, collected or trained if missing."""
+    the cached expert data (`data`, default `source_data`) and checkpoint reused, collected or
+    trained if missing."""
     from safecdt_jax.pairs import parse_pair
     from safecdt_jax.pretrain.run import ensure_checkpoint
 
     source, _ = parse_pair(pair)
-    return ensure_checkpoint(source_data(pair, plan), source, plan.preset, seed=plan.seed,
-                             overwrite=True, progress=progress)
+    return ensure_checkpoint(data or source_data(pair, plan), source, plan.preset,
+                             seed=plan.seed, overwrite=True, progress=progress)
+
+
+def prepare_checkpoints(pair: str, plan: PaperPlan, progress: bool = True) -> list[Path]:
+    """Every pretrained checkpoint the pair's experiments read: `prepare_pair`'s, then the other
+    pretraining seeds' (`prepare_seeds`), all on one check of the source data."""
+    data = source_data(pair, plan)
+    return prepare_seeds(pair, plan, prepare_pair(pair, plan, progress, data), progress, data)
 
 
 def prepare_seeds(pair: str, plan: PaperPlan, first: Path, progress: bool = True,
@@ -273,9 +282,8 @@ def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
         else:
             log(f"{pair}: source data and {plan.pretrain_seeds} pretrained CDT(s) "
                 f"({plan.preset} preset)")
-            ckpt = process_zero_first(f"paper:prepare:{pair}", lambda pair=pair: prepare_seeds(
-                pair, plan, prepare_pair(pair, plan, progress), progress,
-                data=source_data(pair, plan)))
+            ckpt = process_zero_first(f"paper:prepare:{pair}",
+                                      lambda pair=pair: prepare_checkpoints(pair, plan, progress))
         prepare[pair] = time.perf_counter() - t0
         ckpt_id = seeded_identity(ckpt)
         for e in (x for x in experiments(plan) if x.pair == pair):
