@@ -134,3 +134,17 @@ def test_stochastic_actions_sample_the_head_with_the_step_keys():
     ep = jax.device_get(jax.jit(lambda k: cdt_episode(k, env, params, narrow, noisy, 40.0, 5.0,
                                                       horizon=50))(jax.random.PRNGKey(3)))
     np.testing.assert_allclose(ep["actions"], mean, atol=1e-5)
+
+
+def test_cost_terms_count_each_terms_steps_and_change_nothing_else():
+    env, params, cfg, model, _ = _setup()
+    key = jax.random.PRNGKey(3)
+    plain = jax.device_get(jax.jit(lambda k: cdt_episode(
+        k, env, params, model, cfg, 40.0, 5.0, stop_cost=4.0))(key))
+    terms = jax.device_get(jax.jit(lambda k: cdt_episode(
+        k, env, params, model, cfg, 40.0, 5.0, stop_cost=4.0, cost_terms=True))(key))
+    for name in plain:
+        np.testing.assert_array_equal(terms[name], plain[name], err_msg=name)
+    # the Circle task's one term is its whole cost, counted up to the cut at the budget
+    assert list(terms["cost_terms"]) == list(env.task.cost_terms()) == ["cost_out_of_boundary"]
+    assert terms["cost_terms"]["cost_out_of_boundary"] == plain["cost"] == 5.0

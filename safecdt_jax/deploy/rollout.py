@@ -91,6 +91,7 @@ def cdt_episode(
     clip_ctg: bool = True,
     horizon: int | None = None,
     stop_cost=None,
+    cost_terms: bool = False,
 ) -> dict[str, jax.Array]:
     """Run one episode of the CDT with the given targets, T steps (default: the env's horizon).
 
@@ -109,6 +110,8 @@ def cdt_episode(
         stop_cost: the runtime budget (cost units; traced scalar ok): the episode ends after
             the step at which its cost first exceeds it, as the paper's budget wrapper ends it
             (so a violating episode costs B + 1 with 0/1 costs). None: never stopped for cost.
+        cost_terms: also return `cost_terms`, the episode's cost steps per term of the task
+            (static; `policy_episode`).
 
     Returns a dict: per step `observations [T, obs]` (the observation the action was chosen
     from), `actions [T, act]`, `rewards [T]`, `costs [T]`, `returns_to_go [T]`, `costs_to_go [T]`
@@ -133,7 +136,7 @@ def cdt_episode(
         env, env_params, key, act, observe,
         (context_init(cfg), jnp.float32(target_return), jnp.float32(target_cost)),
         record=lambda carry: {"returns_to_go": carry[1], "costs_to_go": carry[2]},
-        horizon=horizon, stop_cost=stop_cost)
+        horizon=horizon, stop_cost=stop_cost, cost_terms=cost_terms)
     out.pop("alive")
     return out
 

@@ -37,7 +37,8 @@ def scan_episode(env: SafetyEnv, params: EnvParams, key: jax.Array, policy: Poli
 
 def policy_episode(env: SafetyEnv, params: EnvParams, key: jax.Array, act: Callable,
                    observe: Callable, policy_state: Any, *, record: Callable | None = None,
-                   horizon: int | None = None, stop_cost=None) -> dict:
+                   horizon: int | None = None, stop_cost=None, cost_terms: bool = False
+                   ) -> dict:
     """One episode of a stateful policy, the protocol every evaluated policy shares (the CDT's
     deployment, the offline baselines): one scan of `horizon` steps (default: the time limit)
     with an alive mask, optionally cut by the paper's runtime budget.
@@ -51,7 +52,10 @@ def policy_episode(env: SafetyEnv, params: EnvParams, key: jax.Array, act: Calla
     Returns per step `observations [T, obs]` (what the action was chosen from), `actions`,
     `rewards`, `costs`, `alive` and whatever `record(policy_state)` (read before `observe`)
     adds; observations, actions, rewards and costs are 0 after the end (recorded fields are
-    not masked). Per episode `length` (int32 steps), `return` and `cost` (sums).
+    not masked). Per episode `length` (int32 steps), `return` and `cost` (sums), and with
+    `cost_terms` (static) `cost_terms`: per term of the task (`task.cost_terms()`, e.g.
+    `cost_hazards`), the steps of the episode at which that term cost (terms overlap: a step
+    in a hazard touching a vase counts in both, and once in `cost`).
     """
     horizon = env.episode_length if horizon is None else horizon
     stop = jnp.float32(jnp.inf if stop_cost is None else stop_cost)
@@ -64,6 +68,9 @@ def policy_episode(env: SafetyEnv, params: EnvParams, key: jax.Array, act: Calla
         cost = jnp.where(alive, nxt.cost, 0.0)
         out = {"observations": state.obs, "actions": action, "rewards": reward, "costs": cost,
                "alive": alive, **(record(pstate) if record is not None else {})}
+        if cost_terms:
+            out["cost_terms"] = {k: jnp.where(alive & (nxt.info[k] > 0), 1.0, 0.0)
+                                 for k in env.task.cost_terms()}
         spent = spent + cost
         alive_next = alive & (nxt.done < 0.5) & (spent <= stop)
         return (nxt, observe(pstate, reward, cost), spent, alive_next), out
@@ -76,6 +83,8 @@ def policy_episode(env: SafetyEnv, params: EnvParams, key: jax.Array, act: Calla
     out["length"] = alive.sum().astype(jnp.int32)
     out["return"] = out["rewards"].sum()
     out["cost"] = out["costs"].sum()
+    if cost_terms:
+        out["cost_terms"] = {k: v.sum() for k, v in out["cost_terms"].items()}
     return out
 
 

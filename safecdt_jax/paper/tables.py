@@ -171,19 +171,22 @@ def table5(records: Records, plan: PaperPlan) -> tuple[str, dict]:
         prho = spearman(list(paper), list(paper.values())) if paper else float("nan")
         theirs = " / ".join(f"{paper[r]:.2f}" if r in paper else "-" for r in ratios)
         if rec is None:
-            rows.append([pair, MISSING, *[""] * (len(ratios) + 1), theirs, f"{prho:.1f}", "-"])
+            rows.append([pair, MISSING, *[""] * (len(ratios) + 2), theirs, f"{prho:.1f}", "-"])
             continue
         costs = fixed_ratio_costs(rec, plan)
         means = [float(costs[r].mean()) for r in ratios]
         rho = spearman(ratios, means)
+        low_high = means[0] / means[-1] if means[-1] > 0 else float("nan")
         data[pair] = {"means": dict(zip(ratios, means, strict=True)), "spearman": rho,
-                      "stds": {r: float(costs[r].std()) for r in ratios}}
+                      "stds": {r: float(costs[r].std()) for r in ratios},
+                      "low_high": low_high}
         rows.append([pair.replace("-", "→"), *(cell(m, costs[r].std()) for m, r in
                                                zip(means, ratios, strict=True)),
-                     f"{rho:.2f}", f"{max(means) - min(means):.2f}", theirs, f"{prho:.1f}",
+                     f"{rho:.2f}", f"{max(means) - min(means):.2f}", f"{low_high:.2f}", theirs,
+                     f"{prho:.1f}",
                      f"{max(paper.values()) - min(paper.values()):.2f}" if paper else "-"])
-    head = ["Pair", *(f"CR {r:g}" for r in ratios), "Spearman", "range", "paper costs",
-            "paper rho", "paper range"]
+    head = ["Pair", *(f"CR {r:g}" for r in ratios), "Spearman", "range",
+            f"CR {ratios[0]:g} / CR {ratios[-1]:g}", "paper costs", "paper rho", "paper range"]
     return markdown_table(head, rows), data
 
 
