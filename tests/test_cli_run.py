@@ -180,3 +180,17 @@ def test_several_checkpoints_deploy_together_as_they_deploy_alone(tiny_run, tmp_
                     model_overrides={"cost_scale": 0.5}).path
     with pytest.raises(ValueError, match="must be pretraining seeds of one run"):
         run_deployment([ckpt, wide], "PointCircle2", ["zero_shot"], [30.0], 1, **kw)
+
+
+def test_lora_rank_at_deployment_overrides_the_checkpoints(tiny_run):
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.deploy.job import load_deployment
+    from safecdt_jax.pretrain import read_meta
+
+    ckpt = tiny_run[1]
+    own = read_meta(ckpt)["model"]["lora_rank"]
+    assert load_deployment(ckpt, "PointCircle2")[2].cfg.lora_rank == own
+    _, _, policy, cfg, _ = load_deployment(ckpt, "PointCircle2", DeployConfig(lora_rank=own + 2))
+    assert (policy.cfg.lora_rank, cfg.lora_rank) == (own + 2, own + 2)
+    with pytest.raises(ValueError, match="lora_rank"):
+        DeployConfig(lora_rank=-1)

@@ -66,6 +66,9 @@ class DeployConfig:
         lora_steps: Adam steps on the adapters after every episode (10).
         lora_batch: replay sequences per step (32), each of the model's context length K.
         lora_lr: Adam learning rate of the adapters (1e-4).
+        lora_rank: rank r of the adapters (0: the checkpoint's `CDTConfig.lora_rank`, 16 in
+            the `cpu` preset). The adapters start at deployment, so any rank deploys any
+            checkpoint; the update keeps the checkpoint's `lora_alpha / r` scale rule.
         lora_labels: what the finetuning windows' return and cost tokens read
             (`deploy.labels`, docs/METHOD.md section 4). `"stage"` (default): every episode run
             under the same targets is labelled with their mean return and cost per full
@@ -130,6 +133,7 @@ class DeployConfig:
     lora_steps: int = 10
     lora_batch: int = 32
     lora_lr: float = 1e-4
+    lora_rank: int = 0
     lora_labels: str = "stage"
     lora_dropout: bool = False
     lora_in_turn: bool | None = None
@@ -140,7 +144,7 @@ class DeployConfig:
     def __post_init__(self) -> None:
         check.integers(self, "episodes", "stage_len", "window", "lora_steps", "lora_batch")
         check.integers(self, "horizon", optional=True)
-        check.integers(self, "lambda_warmup", "lora_micro_batch", minimum=0)
+        check.integers(self, "lambda_warmup", "lora_micro_batch", "lora_rank", minimum=0)
         check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr")
         check.booleans(self, "lora_dropout", "clip_ctg", "stop_over_budget")
         check.booleans(self, "lora_in_turn", optional=True)
