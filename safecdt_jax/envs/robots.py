@@ -198,6 +198,11 @@ class CarRobot(Robot):
     # m/s under random actions against 0.009 from side slip alone).
     roll_height: float = 0.06
     contacts: tuple[tuple[float, float], ...] = ((-0.13, 0.1), (0.13, 0.1), (0.0, -0.1))
+    # A sliding driven wheel: False (physics 5) scales its gain-weighted force onto the
+    # friction circle; True points it along the contact's own slip, the wheel spinning up
+    # against the sliding contact (isotropic Coulomb friction, as native MuJoCo's contact),
+    # which leaves a sliding wheel less grip sideways (an experiment for issue 48).
+    slide_follows_slip: bool = False
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
@@ -244,7 +249,33 @@ class CarRobot(Robot):
         # Each contact's force lies in its friction circle.
         size = jnp.linalg.norm(forces, axis=-1)
         forces *= jnp.minimum(1.0, limit / jnp.maximum(size, 1e-12))[:, None]
+        if self.slide_follows_slip:
+            sliding_wheel = size[:2] > limit[:2]
+            slid = self._sliding_wheel_forces(v_pts[:2], rim, limit[:2], c_w)
+            forces = forces.at[:2].set(jnp.where(sliding_wheel[:, None], slid, forces[:2]))
         return forces, normal
+
+    def _sliding_wheel_forces(self, v_pts: jax.Array, rim: jax.Array, limit: jax.Array,
+                              c_w: jax.Array) -> jax.Array:
+        """Forces (N) [2, 2] of the two driven wheels' contacts when they slide: magnitude
+        `limit`, direction that of the contact's slip (-v_lat, rim' - v_long), where the rim
+        speed rim' = rim - (r^2 / c_w) F_long is what the wheel spins at with the contact's
+        reaction on it. Solved by a fixed-point iteration on the slip speed n:
+        sigma_long = b n / (n + u L), n^2 = sigma_long^2 + v_lat^2 (b = rim - v_long,
+        u = r^2 / c_w), which decreases monotonically from n = |(v_lat, b)| to the root."""
+        u_l = self.wheel_radius ** 2 / c_w * limit
+        b = rim - v_pts[:, 1]
+        lat = v_pts[:, 0]
+
+        def step(n, _):
+            long = b * n / (n + u_l)
+            return jnp.sqrt(long ** 2 + lat ** 2), None
+
+        n0 = jnp.sqrt(b ** 2 + lat ** 2)
+        n, _ = jax.lax.scan(step, n0, None, length=12)
+        long = b * n / (n + u_l)
+        n = jnp.maximum(jnp.sqrt(long ** 2 + lat ** 2), 1e-12)
+        return limit[:, None] * jnp.stack([-lat, long], axis=-1) / n[:, None]
 
     def traction(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
                  loads: jax.Array, com: jax.Array) -> jax.Array:
