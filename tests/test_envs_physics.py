@@ -68,6 +68,27 @@ def test_contact_forces_brake_an_undriven_wheel_and_stay_in_the_friction_circle(
     assert normal.sum() == pytest.approx(float(CAR._loads().sum()), rel=1e-5)
 
 
+def test_a_sliding_wheels_force_follows_its_slip_with_the_wheel_spun_up():
+    """`slide_follows_slip`: magnitude at the limit, direction (-v_lat, rim' - v_long) where
+    rim' = rim - (r^2 / c_w) F_long is the rim speed the contact's reaction leaves the wheel."""
+    import dataclasses
+
+    car = dataclasses.replace(CAR, slide_follows_slip=True)
+    c_w, limit = CAR.wheel_damping, jnp.array([0.08, 0.08])
+    v_pts = jnp.array([[0.13, 0.0], [0.0, 0.2]])  # a sideways slip; a pure lengthwise one
+    rim = jnp.array([-1.0, -1.0])
+    f = np.asarray(car._sliding_wheel_forces(v_pts, rim, limit, c_w))
+    np.testing.assert_allclose(np.linalg.norm(f, axis=1), 0.08, rtol=1e-5)
+    rim_spun = np.asarray(rim) - CAR.wheel_radius ** 2 / c_w * f[:, 1]
+    slip = np.stack([-np.asarray(v_pts)[:, 0], rim_spun - np.asarray(v_pts)[:, 1]], axis=1)
+    np.testing.assert_allclose(f / 0.08, slip / np.linalg.norm(slip, axis=1, keepdims=True),
+                               atol=1e-5)
+    assert f[1, 0] == 0.0 and f[1, 1] == pytest.approx(-0.08)  # no sideways slip
+    # less sideways grip than the gain-weighted force scaled onto the circle (physics 5)
+    gains = np.array([-CAR.side_gain * 0.13, CAR.slip_gain * (-1.0)])
+    assert abs(f[0, 0]) < 0.08 * abs(gains[0]) / np.linalg.norm(gains)
+
+
 def test_action_saturates_at_force_limit():
     # the force ranges (Car 0.02 N m, Point 0.05 N) set the action scale: beyond them, no change
     a = hold("CarCircle1", (0.5, 0.5), 1.0)
