@@ -67,6 +67,12 @@ def test_spec_records_how_lora_ran_only_where_it_changes_bits():
     assert (spec["lora_in_turn"], spec["lora_labels"]) == (True, "stage")  # one CPU device
     assert experiment_spec(main, hindsight, ckpt) == {**spec, "lora_labels": "hindsight"}
     assert "lora_labels" not in experiment_spec(ctg, stage, ckpt)
+    # an adapting run's spec holds every scheduler and LoRA setting: a changed default is a
+    # new experiment; the fixed-target runs of Tables 5 and 6 depend on none of them
+    from safecdt_jax.deploy.config import DeployConfig
+    assert spec["deploy_config"]["lora_lr"] == DeployConfig().lora_lr
+    assert spec["deploy_config"]["cr_step"] == DeployConfig().cr_step
+    assert "deploy_config" not in experiment_spec(ctg, stage, ckpt)
     assert experiment_spec(ctg, stage, ckpt) == experiment_spec(ctg, hindsight, ckpt)
     with pytest.raises(ValueError, match=r"PaperPlan\.lora_labels"):
         PaperPlan(lora_labels="luck")

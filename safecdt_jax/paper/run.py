@@ -11,6 +11,7 @@ over every process; process 0 alone prepares checkpoints, trains baselines and w
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import time
@@ -130,9 +131,24 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
         if _has_lora(e):
             in_turn = DeployConfig().resolved().lora_in_turn
             spec |= {"lora_in_turn": in_turn, "lora_labels": plan.lora_labels}
+        if _adapts(e):  # every scheduler and LoRA setting decides an adapting run's result,
+            # so a changed default is a new experiment, never a stale record reused
+            settings = dataclasses.asdict(DeployConfig())
+            spec["deploy_config"] = {k: v for k, v in settings.items() if k not in _IN_SPEC}
         return spec
     return spec | {"algos": list(plan.baseline_algos), "preset": plan.baseline_preset,
                    "stop_over_budget": True, "data": ckpt_id["data"], "env": env_version(target)}
+
+
+# DeployConfig fields the spec holds elsewhere (from the plan) or that the devices resolve.
+_IN_SPEC = ("episodes", "horizon", "budget", "lora_labels", "lora_in_turn", "stop_over_budget")
+
+
+def _adapts(e: Experiment) -> bool:
+    """Whether any run of deployment `e` retunes its targets or finetunes its adapters."""
+    from safecdt_jax.deploy.config import make_variant
+
+    return any(bool(make_variant(v).scheduler) or bool(make_variant(v).lora) for v, _ in e.runs)
 
 
 def _has_lora(e: Experiment) -> bool:
