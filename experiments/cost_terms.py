@@ -31,9 +31,10 @@ RR = 0.5  # Table 5's return ratio
 def checkpoints(task: str, seeds: list[int]) -> list[Path]:
     """The cache's `cpu` checkpoints of `task` for pretraining seeds `seeds` (0: `TASK-cpu`)."""
     from safecdt_jax.paths import checkpoint_dir
+    from safecdt_jax.pretrain.seeds import default_outs
 
-    first = checkpoint_dir(task, "cpu")
-    out = [first if s == 0 else first.with_name(f"{first.name}-seed{s}") for s in seeds]
+    out = [checkpoint_dir(task, "cpu") if s == 0 else default_outs(task, "cpu", [s])[0]
+           for s in seeds]
     for path in out:
         if not path.is_dir():
             raise SystemExit(f"no checkpoint {path}: run `safecdt-jax paper` (or `run`) first")
