@@ -175,17 +175,26 @@ TURNS = [("straight (1, 1)", (1.0, 1.0)), ("spin (1, -1)", (1.0, -1.0)),
          ("switching, p = 0.7", 0.7), ("switching, p = 0.9", 0.9)]
 
 
-def turning(task: str, episodes: int = 4, steps: int = 500, seed: int = 0) -> list[dict]:
-    """Mean forward speed (m/s) and yaw rate (rad/s) over steps 100..`steps` per `TURNS` script,
-    ours and Safety-Gymnasium's (Car tasks: velocimeter y is dim 4, gyro z dim 8)."""
+def turn_scripts(steps: int = 500, seed: int = 0) -> list[tuple[str, np.ndarray]]:
+    """Each `TURNS` script as actions [steps, 2]: a held action, or straight (1, 1) with the
+    row's probability and spin (1, -1) otherwise, drawn step by step from one generator."""
     rng = np.random.default_rng(seed)
-    rows = []
+    out = []
     for name, spec in TURNS:
         if isinstance(spec, float):
             straight = rng.uniform(size=steps) < spec
             acts = np.where(straight[:, None], [[1.0, 1.0]], [[1.0, -1.0]])
         else:
             acts = np.tile([spec], (steps, 1))
+        out.append((name, acts))
+    return out
+
+
+def turning(task: str, episodes: int = 4, steps: int = 500, seed: int = 0) -> list[dict]:
+    """Mean forward speed (m/s) and yaw rate (rad/s) over steps 100..`steps` per `TURNS` script,
+    ours and Safety-Gymnasium's (Car tasks: velocimeter y is dim 4, gyro z dim 8)."""
+    rows = []
+    for name, acts in turn_scripts(steps, seed):
         script = acts.tolist()
         ours = ours_trace(task, episodes, steps, seed, script)[:, 100:]
         theirs = native({"cmd": "trace", "task": task, "episodes": episodes, "steps": steps,

@@ -89,6 +89,31 @@ def test_a_sliding_wheels_force_follows_its_slip_with_the_wheel_spun_up():
     assert abs(f[0, 0]) < 0.08 * abs(gains[0]) / np.linalg.norm(gains)
 
 
+@pytest.mark.parametrize("power", [0.0, 2.0])
+def test_a_contacts_force_bends_onto_its_friction_limit_as_saturation_power_says(power):
+    """`saturation_power` n: the linear force s becomes s / (1 + (s / L)^n)^(1/n) (n = 0: the
+    clip min(s, L) of physics 5); the direction stays the linear force's."""
+    import dataclasses
+
+    car = dataclasses.replace(CAR, saturation_power=power)
+    _, params = envs.make("CarCircle1")
+    loads = jnp.asarray(CAR._loads(), jnp.float32)
+    state = hold("CarCircle1", (1.0, 1.0), 0.2)  # accelerating: the wheels pull near their limit
+    data = state.data.replace(xfrc_applied=jnp.zeros_like(state.data.xfrc_applied))  # no transfer
+    torque = params.gear_scale * CAR.executed_action(jnp.array([1.0, 1.0]))
+    bent, normal = map(np.asarray, car.contact_forces(data, torque, params, loads))
+    linear, _ = map(np.asarray, dataclasses.replace(CAR, sliding=1e6, caster_sliding=1e6)
+                    .contact_forces(data, torque, params, loads))
+    s = np.linalg.norm(linear, axis=1)
+    limit = np.array([CAR.sliding, CAR.sliding, CAR.caster_sliding]) * CAR.friction * normal
+    want = np.minimum(s, limit) if power == 0 else s / (1 + (s / limit) ** power) ** (1 / power)
+    np.testing.assert_allclose(np.linalg.norm(bent, axis=1), want, rtol=1e-5)
+    np.testing.assert_allclose(bent / np.linalg.norm(bent, axis=1, keepdims=True),
+                               linear / s[:, None], atol=1e-6)
+    if power:  # bent below the clip: the force falls off before the limit
+        assert np.all(np.linalg.norm(bent, axis=1) < np.minimum(s, limit))
+
+
 def test_action_saturates_at_force_limit():
     # the force ranges (Car 0.02 N m, Point 0.05 N) set the action scale: beyond them, no change
     a = hold("CarCircle1", (0.5, 0.5), 1.0)

@@ -40,3 +40,22 @@ def test_targets_and_env_versions():
     assert envs.env_version("PointCircle1").startswith("Point")
     with pytest.raises(ValueError, match="unknown task 'CarGoal3'"):
         envs.env_version("CarGoal3")
+
+
+def test_car_fit_loss_weights_switching_turns_and_leaves_random_drift_out_by_default():
+    from experiments.car_fit import LOW_WEIGHT, SWITCH_WEIGHT, loss, scripts
+
+    names = [name for name, _ in scripts()]
+    assert names[-1] == "random" and len(names) == len(set(names))
+    native = {name: [0.5, 1.0] for name in names} | {"from rest": [0.4, 0.5]}
+    assert loss(native, native) == 0.0
+    off = lambda key, i, by: native | {key: [v + by * (j == i) for j, v in enumerate(native[key])]}
+    n = 2 * len(names) + 2
+    assert loss(off("spin (1, -1)", 1, 0.1), native) == pytest.approx(0.1 / np.sqrt(n))
+    assert loss(off("switching, p = 0.5", 1, 0.1), native) == pytest.approx(
+        SWITCH_WEIGHT * 0.1 / np.sqrt(n))
+    assert loss(off("(0.01, 0.01)", 0, 0.1), native) == pytest.approx(
+        LOW_WEIGHT * 0.1 / np.sqrt(n))
+    assert loss(off("random", 0, 0.1), native) == 0.0  # reported, not fitted
+    assert loss(off("random", 0, 0.1), native, random_weight=5.0) == pytest.approx(
+        0.5 / np.sqrt(n))

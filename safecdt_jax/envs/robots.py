@@ -203,6 +203,12 @@ class CarRobot(Robot):
     # against the sliding contact (isotropic Coulomb friction, as native MuJoCo's contact),
     # which leaves a sliding wheel less grip sideways (an experiment for issue 48).
     slide_follows_slip: bool = False
+    # How a contact's force meets its friction limit L: 0 (physics 5) clips the linear force s
+    # at L; n > 0 bends it smoothly, |F| = s / (1 + (s / L)^n)^(1/n), as native MuJoCo's soft
+    # contacts do: its car gains speed ever more slowly as it nears top speed, and so loses
+    # more to each spin pulse. n = 1.82 with the constants `experiments.car_fit` fits is the
+    # physics-6 candidate (docs/research/environment-fidelity.md; issue 48).
+    saturation_power: float = 0.0
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
@@ -248,7 +254,13 @@ class CarRobot(Robot):
         forces = jnp.concatenate([wheel, caster[None]])
         # Each contact's force lies in its friction circle.
         size = jnp.linalg.norm(forces, axis=-1)
-        forces *= jnp.minimum(1.0, limit / jnp.maximum(size, 1e-12))[:, None]
+        # (a traced power, as experiments.car_fit's search passes, always takes the curve)
+        if isinstance(self.saturation_power, jax.Array) or self.saturation_power > 0:
+            ratio = size / jnp.maximum(limit, 1e-12)
+            forces *= ((1 + ratio ** self.saturation_power)
+                       ** (-1 / self.saturation_power))[:, None]
+        else:
+            forces *= jnp.minimum(1.0, limit / jnp.maximum(size, 1e-12))[:, None]
         if self.slide_follows_slip:
             sliding_wheel = size[:2] > limit[:2]
             slid = self._sliding_wheel_forces(v_pts[:2], rim, limit[:2], c_w)

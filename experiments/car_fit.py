@@ -1,0 +1,227 @@
+"""Fit the Car's traction constants to native Safety-Gymnasium's turning and speed-up (issue 48).
+
+    python -m experiments.car_fit [--saturation-power 2] [--rounds 25]
+        [--start FIELD=VALUE ...] [--out PATH]
+
+Targets, native CarCircle1 (`experiments.sim2sim.native`, cached): the mean forward speed
+(m/s) and yaw rate (rad/s) over steps 100-500 of each `sim2sim.TURNS` script, of two held
+drives below the torque limit and of uniform random actions (the forward drift that
+`tests/test_envs_physics.py` pins; 4 layouts), and
+the forward speed over the 10 steps after a start from rest and the 12 after a 45-step spin
+(`car_slide.SWITCHES`, 8 layouts): how fast the car regains speed decides how far a spin pulse
+carries it. Ours: the bare Car from rest (the floor is flat, so one run per script), every
+candidate of a round in one vmapped program. Search: the cross-entropy method over the logs of
+`FIELDS` (48 candidates a round, the 10 best refit the sampler), from the `CarRobot` defaults
+or the `--start` values, with `saturation_power` held at its flag (a local search: a second run
+from the first one's result can still improve). Loss: the root-mean-square error over all those
+numbers, the switching scripts' yaw rates weighted `SWITCH_WEIGHT` times (the turning that
+brings a Circle expert's car back inside) and the low-torque speeds `LOW_WEIGHT` times; the
+random-action row is reported but not fitted
+unless `--random-weight W` > 0 weights its speed (fitting it costs the Circle: docs/research/
+environment-fidelity.md). Writes JSON and markdown
+(default `experiments/results/car_fit.{json,md}`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import machine, markdown_table, write_json, write_markdown
+
+FIELDS = ("sliding", "load_transfer", "slip_gain", "side_gain", "caster_gain", "caster_sliding",
+          "yaw_scrub")
+BOUNDS = {"sliding": (0.4, 1.2), "load_transfer": (0.0, 0.8), "slip_gain": (0.08, 1.5),
+          "side_gain": (0.2, 1.5), "caster_gain": (0.1, 1.0), "caster_sliding": (0.3, 1.2),
+          "yaw_scrub": (0.0, 0.02)}
+# Physics 5's constants (a clipped friction circle), the table's reference column.
+PHYSICS_5 = {"sliding": 0.78, "load_transfer": 0.45, "slip_gain": 0.25, "side_gain": 0.557,
+             "caster_gain": 0.3, "caster_sliding": 0.65, "yaw_scrub": 0.005}
+STEPS = 500  # per turning script, as `sim2sim.turning`
+# Held drives below the torque limit (0.02): the rolling regime a clone's mean action can
+# reach and where the shifted gears and masses drive.
+LOW_TORQUES = (0.01, 0.005)
+SWITCH_WEIGHT = 3.0
+LOW_WEIGHT = 3.0  # the held low-torque drives' speeds: two numbers stand for a whole regime
+
+
+def scripts() -> list[tuple[str, np.ndarray]]:
+    """`sim2sim.turning`'s action scripts [STEPS, 2], the `LOW_TORQUES` held on both wheels,
+    then uniform random actions in [-1, 1]^2 (their own generator, seed 1)."""
+    from experiments.sim2sim import turn_scripts
+
+    out = [(name, acts.astype(np.float32)) for name, acts in turn_scripts(STEPS)]
+    for level in LOW_TORQUES:
+        out.append((f"({level}, {level})", np.full((STEPS, 2), level, np.float32)))
+    uniform = np.random.default_rng(1).uniform(-1.0, 1.0, (STEPS, 2))
+    return [*out, ("random", uniform.astype(np.float32))]
+
+
+def metrics(speed: np.ndarray, yaw: np.ndarray) -> dict[str, list[float]]:
+    """Per script [n_scripts + 1, STEPS] of forward speed and yaw rate (the last row: the
+    `SWITCHES` script): the turning table's means and the two speed-up curves."""
+    names = [name for name, _ in scripts()]
+    out = {name: [float(speed[i, 100:].mean()), float(yaw[i, 100:].mean())]
+           for i, name in enumerate(names)}
+    out["random"][1] = float(np.abs(yaw[names.index("random"), 100:]).mean())  # mean |yaw|
+    out["from rest"] = speed[-1, 2:12].tolist()
+    out["after a spin"] = speed[-1, 60:72].tolist()
+    return out
+
+
+def loss(ours: dict, native: dict, random_weight: float = 0.0) -> float:
+    """Root-mean-square error over every number of `metrics`, switching yaw rates and low-torque
+    speeds weighted; the random-action row's speed weighted `random_weight`, its yaw not at
+    all."""
+    err = []
+    for key, value in native.items():
+        w = np.ones(len(value))
+        if key.startswith("switching"):
+            w[1] = SWITCH_WEIGHT
+        if key in {f"({level}, {level})" for level in LOW_TORQUES}:
+            w[0] = LOW_WEIGHT
+        if key == "random":
+            w = np.array([random_weight, 0.0])
+        err.extend(w * (np.asarray(ours[key]) - np.asarray(value)))
+    return float(np.sqrt(np.mean(np.square(err))))
+
+
+def native_metrics() -> dict[str, list[float]]:
+    """`metrics` of native Safety-Gymnasium's car (CarCircle1, cached native traces)."""
+    from experiments.car_slide import SWITCHES
+    from experiments.sim2sim import native
+
+    rows = []
+    for episodes, acts in [(4, a.tolist()) for _, a in scripts()] + [(8, SWITCHES)]:
+        obs = native({"cmd": "trace", "task": "CarCircle1", "episodes": episodes,
+                      "steps": len(acts), "seed": 0, "actions": acts})["obs"]
+        rows.append(np.pad(obs.mean(0), ((0, STEPS - len(acts)), (0, 0))))
+    obs = np.stack(rows)
+    return metrics(-obs[..., 4], obs[..., 8])
+
+
+@functools.cache
+def _program(power: float | None):
+    """Jitted `thetas [n, len(FIELDS) (+ 1)] -> (speed, yaw) [n, scripts + 1, STEPS]`: our
+    bare Car from rest under every script, one candidate set of `FIELDS` per row (and its
+    `saturation_power` in a last column when `power` is None)."""
+    import jax
+    import jax.numpy as jnp
+    from mujoco import mjx
+
+    from experiments.car_slide import SWITCHES
+    from safecdt_jax.envs.geometry import rot2
+    from safecdt_jax.envs.robots import CAR
+    from safecdt_jax.envs.types import EnvParams
+
+    model, params = mjx.put_model(CAR.mj_model), EnvParams()
+    switches = np.pad(np.asarray(SWITCHES, np.float32), ((0, STEPS - len(SWITCHES)), (0, 0)))
+    acts = jnp.asarray(np.stack([a for _, a in scripts()] + [switches]))
+
+    def run(theta, script):
+        car = dataclasses.replace(CAR, saturation_power=theta[-1] if power is None else power,
+                                  **{f: theta[i] for i, f in enumerate(FIELDS)})
+
+        def step(carry, action):
+            data, state = car.physics(model, carry[0], action, params, carry[1])
+            v = rot2(data.qpos[2]).T @ data.qvel[:2]
+            return (data, state), jnp.stack([-v[1], data.qvel[2]])
+
+        start = (car.init_data(model, jnp.zeros(2), jnp.float32(0.0)), car.init_state())
+        return jax.lax.scan(step, start, script)[1]
+
+    return jax.jit(jax.vmap(lambda th: jax.vmap(lambda s: run(th, s))(acts)))
+
+
+def evaluate(thetas: np.ndarray, power: float | None) -> list[dict]:
+    """`metrics` of each candidate row of `thetas` [n, len(FIELDS)] (power None: the last
+    of len(FIELDS) + 1 columns is each row's `saturation_power`)."""
+    out = np.asarray(_program(power)(thetas.astype(np.float32)))
+    return [metrics(o[..., 0], o[..., 1]) for o in out]
+
+
+def fit(power: float | None, rounds: int, start: dict[str, float] | None = None,
+        random_weight: float = 0.0, seed: int = 0, size: int = 48, elite: int = 10):
+    """Cross-entropy search from the `CarRobot` defaults updated by `start` (power None: the
+    `saturation_power` is searched too); returns (best constants, its loss, the defaults' loss,
+    the best loss after each round)."""
+    from safecdt_jax.envs.robots import CAR
+
+    names = FIELDS if power is not None else (*FIELDS, "saturation_power")
+    bounds = BOUNDS | {"saturation_power": (1.0, 20.0)}
+    target = native_metrics()
+    defaults = np.array([getattr(CAR, f) for f in FIELDS])
+    start = np.array([(start or {}).get(f, getattr(CAR, f)) for f in names])
+    lo, hi = (np.array([bounds[f][i] for f in names]) for i in (0, 1))
+    rng = np.random.default_rng(seed)
+    mean, std = np.log(start), np.full(len(names), 0.3)
+    best, history = (np.inf, start), []
+    for _ in range(rounds):
+        thetas = np.clip(np.exp(mean + std * rng.standard_normal((size, len(names)))), lo, hi)
+        thetas[0] = np.exp(mean)
+        losses = np.array([loss(m, target, random_weight) for m in evaluate(thetas, power)])
+        top = np.log(thetas[np.argsort(losses)[:elite]])
+        mean, std = top.mean(0), np.maximum(top.std(0), 0.03)
+        if losses.min() < best[0]:
+            best = (float(losses.min()), thetas[np.argmin(losses)])
+        history.append(best[0])
+    default = loss(evaluate(defaults[None], CAR.saturation_power)[0], target, random_weight)
+    return dict(zip(names, best[1].round(4).tolist(), strict=True)), best[0], default, history
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--saturation-power", type=float, default=2.0)
+    ap.add_argument("--fit-power", action="store_true",
+                    help="search saturation_power too (from --saturation-power)")
+    ap.add_argument("--rounds", type=int, default=25)
+    ap.add_argument("--random-weight", type=float, default=0.0)
+    ap.add_argument("--start", action="append", default=[], metavar="FIELD=VALUE",
+                    help="a starting value of one of FIELDS (repeatable)")
+    ap.add_argument("--out", type=Path, default=Path("experiments/results/car_fit.json"))
+    args = ap.parse_args(argv)
+    from safecdt_jax.envs.robots import CAR
+
+    start = {k: float(v) for k, v in (c.split("=", 1) for c in args.start)}
+    unknown = sorted(set(start) - {*FIELDS, "saturation_power"})
+    if unknown:
+        raise SystemExit(f"--start: unknown field(s) {', '.join(unknown)}; valid: "
+                         f"{', '.join(FIELDS)}")
+    if args.fit_power:
+        start.setdefault("saturation_power", args.saturation_power)
+    power = None if args.fit_power else args.saturation_power
+    best, best_loss, default_loss, history = fit(power, args.rounds, start, args.random_weight)
+    power = best.get("saturation_power", args.saturation_power)
+    target = native_metrics()
+    physics_5 = evaluate(np.array([[PHYSICS_5[f] for f in FIELDS]]), 0.0)[0]
+    before = evaluate(np.array([[getattr(CAR, f) for f in FIELDS]]), CAR.saturation_power)[0]
+    after = evaluate(np.array([[best[f] for f in FIELDS]]), power)[0]
+    command = "python -m experiments.car_fit " + " ".join(sys.argv[1:] if argv is None else argv)
+    write_json(args.out, {"command": command, "machine": machine(),
+                          "saturation_power": power, "start": start,
+                          "random_weight": args.random_weight,
+                          "constants": best,
+                          "loss": best_loss, "default_loss": default_loss, "history": history,
+                          "native": target, "physics_5": physics_5, "defaults": before,
+                          "after": after})
+    f2 = lambda xs: ", ".join(f"{x:.2f}" for x in xs)
+    rows = [[k, f2(physics_5[k]), f2(before[k]), f2(after[k]), f2(target[k])] for k in target]
+    body = (f"Loss (RMS, switching yaw x{SWITCH_WEIGHT:g}, low torque x{LOW_WEIGHT:g}, "
+            f"random drift x{args.random_weight:g}): physics 5 "
+            f"{loss(physics_5, target, args.random_weight):.4f}, the defaults {default_loss:.4f}, "
+            f"fitted {best_loss:.4f}.\n\nFitted constants (saturation_power "
+            f"{power:g}): " + ", ".join(f"`{k}={v:g}`" for k, v in best.items())
+            + "\n\n" + markdown_table(["script (speed m/s, yaw rad/s)", "physics 5",
+                                       "defaults", "fitted", "native"], rows))
+    write_markdown(args.out.with_suffix(".md"), "Car traction constants fitted to native "
+                   "turning and speed-up", command, body)
+    print(args.out.with_suffix(".md").read_text())
+
+
+if __name__ == "__main__":
+    main()
