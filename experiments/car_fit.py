@@ -12,14 +12,14 @@ the forward speed over the 10 steps after a start from rest and the 12 after a 4
 carries it. Ours: the bare Car from rest (the floor is flat, so one run per script), every
 candidate of a round in one vmapped program. Search: the cross-entropy method over the logs of
 `FIELDS` (48 candidates a round, the 10 best refit the sampler), from the `CarRobot` defaults
-or the `--start` values, with `saturation_power` held at its flag (a local search: a second run
-from the first one's result can still improve). Loss: the root-mean-square error over all those
-numbers, the switching scripts' yaw rates weighted `SWITCH_WEIGHT` times (the turning that
-brings a Circle expert's car back inside) and the low-torque speeds `LOW_WEIGHT` times; the
-random-action row is reported but not fitted
-unless `--random-weight W` > 0 weights its speed (fitting it costs the Circle: docs/research/
-environment-fidelity.md). Writes JSON and markdown
-(default `experiments/results/car_fit.{json,md}`).
+or the `--start` values, with `saturation_power` held at its flag or searched too
+(`--fit-power`); a local search: a second run from the first one's result can still improve.
+Loss: the root-mean-square error over all those numbers, the switching scripts' yaw rates
+weighted `SWITCH_WEIGHT` times (the turning that brings a Circle expert's car back inside) and
+the low-torque speeds `LOW_WEIGHT` times; the random-action row is reported but not fitted
+unless `--random-weight W` > 0 weights its speed (fitting it costs the Circle:
+docs/research/environment-fidelity.md). Writes JSON and markdown (default
+`experiments/results/car_fit.{json,md}`).
 """
 
 from __future__ import annotations
@@ -48,18 +48,21 @@ STEPS = 500  # per turning script, as `sim2sim.turning`
 LOW_TORQUES = (0.01, 0.005)
 SWITCH_WEIGHT = 3.0
 LOW_WEIGHT = 3.0  # the held low-torque drives' speeds: two numbers stand for a whole regime
+LOW_KEYS = frozenset(f"({level}, {level})" for level in LOW_TORQUES)
 
 
-def scripts() -> list[tuple[str, np.ndarray]]:
+@functools.cache
+def scripts() -> tuple[tuple[str, np.ndarray], ...]:
     """`sim2sim.turning`'s action scripts [STEPS, 2], the `LOW_TORQUES` held on both wheels,
-    then uniform random actions in [-1, 1]^2 (their own generator, seed 1)."""
+    then uniform random actions in [-1, 1]^2 (their own generator, seed 1). Cached: every
+    candidate's `metrics` reads their names."""
     from experiments.sim2sim import turn_scripts
 
     out = [(name, acts.astype(np.float32)) for name, acts in turn_scripts(STEPS)]
     for level in LOW_TORQUES:
         out.append((f"({level}, {level})", np.full((STEPS, 2), level, np.float32)))
     uniform = np.random.default_rng(1).uniform(-1.0, 1.0, (STEPS, 2))
-    return [*out, ("random", uniform.astype(np.float32))]
+    return (*out, ("random", uniform.astype(np.float32)))
 
 
 def metrics(speed: np.ndarray, yaw: np.ndarray) -> dict[str, list[float]]:
@@ -83,7 +86,7 @@ def loss(ours: dict, native: dict, random_weight: float = 0.0) -> float:
         w = np.ones(len(value))
         if key.startswith("switching"):
             w[1] = SWITCH_WEIGHT
-        if key in {f"({level}, {level})" for level in LOW_TORQUES}:
+        if key in LOW_KEYS:
             w[0] = LOW_WEIGHT
         if key == "random":
             w = np.array([random_weight, 0.0])
@@ -91,13 +94,15 @@ def loss(ours: dict, native: dict, random_weight: float = 0.0) -> float:
     return float(np.sqrt(np.mean(np.square(err))))
 
 
+@functools.cache
 def native_metrics() -> dict[str, list[float]]:
-    """`metrics` of native Safety-Gymnasium's car (CarCircle1, cached native traces)."""
+    """`metrics` of native Safety-Gymnasium's car (CarCircle1, cached native traces); read
+    it, do not change it (one dict per process)."""
     from experiments.car_slide import SWITCHES
     from experiments.sim2sim import native
 
     rows = []
-    for episodes, acts in [(4, a.tolist()) for _, a in scripts()] + [(8, SWITCHES)]:
+    for episodes, acts in [*((4, a.tolist()) for _, a in scripts()), (8, SWITCHES)]:
         obs = native({"cmd": "trace", "task": "CarCircle1", "episodes": episodes,
                       "steps": len(acts), "seed": 0, "actions": acts})["obs"]
         rows.append(np.pad(obs.mean(0), ((0, STEPS - len(acts)), (0, 0))))
@@ -121,7 +126,7 @@ def _program(power: float | None):
 
     model, params = mjx.put_model(CAR.mj_model), EnvParams()
     switches = np.pad(np.asarray(SWITCHES, np.float32), ((0, STEPS - len(SWITCHES)), (0, 0)))
-    acts = jnp.asarray(np.stack([a for _, a in scripts()] + [switches]))
+    acts = jnp.asarray(np.stack([*(a for _, a in scripts()), switches]))
 
     def run(theta, script):
         car = dataclasses.replace(CAR, saturation_power=theta[-1] if power is None else power,
@@ -193,7 +198,7 @@ def main(argv: list[str] | None = None) -> None:
     unknown = sorted(set(start) - {*FIELDS, "saturation_power"})
     if unknown:
         raise SystemExit(f"--start: unknown field(s) {', '.join(unknown)}; valid: "
-                         f"{', '.join(FIELDS)}")
+                         f"{', '.join(FIELDS)}, saturation_power")
     if args.fit_power:
         start.setdefault("saturation_power", args.saturation_power)
     power = None if args.fit_power else args.saturation_power
