@@ -329,7 +329,7 @@ def test_warm_started_experts_append_to_a_snapshot_file(tmp_path):
     from typer.testing import CliRunner
 
     from safecdt_jax.cli import app
-    from safecdt_jax.experts.export import load_snapshots, merge_snapshots
+    from safecdt_jax.experts.export import load_snapshots, merge_snapshots, select_runs
 
     snaps = tmp_path / "snaps.npz"
     base = ["expert", "--task", "PointCircle1", "--preset", "tiny", "--steps", "320",
@@ -350,6 +350,13 @@ def test_warm_started_experts_append_to_a_snapshot_file(tmp_path):
     np.testing.assert_array_equal(merged["actor"]["log_std"][:4], first["actor"]["log_std"])
     # The warm start read snapshot 1 (run 0's last): its normaliser count carried on.
     assert merged["norm"].count[4] == first["norm"].count[1] + 8 * 20
+    picked, picked_meta = load_snapshots(select_runs(tmp_path / "sel.npz", snaps, [2, 0]))
+    assert [(e["run"], e["schedule"][0]) for e in picked_meta["snapshots"]] == [
+        (0, 2.0), (0, 2.0), (1, 5.0), (1, 5.0)]
+    np.testing.assert_array_equal(picked["actor"]["log_std"],
+                                  merged["actor"]["log_std"][np.array([4, 5, 0, 1])])
+    with pytest.raises(ValueError, match=r"has runs \[0, 1, 2\], not \[7\]"):
+        select_runs(tmp_path / "sel.npz", snaps, [7])
     bad = CliRunner().invoke(app, [*base, "--cost-limit", "2", "--out", str(tmp_path / "c"),
                                    "--warm-start", f"{snaps}:6"])
     assert bad.exit_code == 1 and "holds 6 snapshots (0-5)" in bad.output

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -136,6 +137,23 @@ def merge_snapshots(out: str | os.PathLike, *files: str | os.PathLike) -> Path:
     return _write_snapshot_file(out, snaps, first | {"snapshots": entries})
 
 
+def select_runs(out: str | os.PathLike, path: str | os.PathLike, runs: Sequence[int]) -> Path:
+    """Writes the snapshots of `runs` of snapshot file `path`, runs in the order given and
+    renumbered 0, 1, ..., into `out` (atomically; `out` may be `path`): how a run that failed
+    (a collapsed seed) is left out before `merge_snapshots` joins a retrained one. ValueError
+    naming a run the file lacks."""
+    snaps, meta = load_snapshots(path)
+    have = sorted({s["run"] for s in meta["snapshots"]})
+    missing = [r for r in runs if r not in have]
+    if missing or not runs:
+        raise ValueError(f"select_runs: {os.fspath(path)} has runs {have}, not {missing or runs}")
+    index = [i for r in runs for i, s in enumerate(meta["snapshots"]) if s["run"] == r]
+    entries = [meta["snapshots"][i] | {"run": runs.index(meta["snapshots"][i]["run"])}
+               for i in index]
+    picked = jax.tree.map(lambda x: np.asarray(x)[np.asarray(index)], snaps)
+    return _write_snapshot_file(out, picked, meta | {"snapshots": entries})
+
+
 def load_snapshots(path: str | os.PathLike) -> tuple[dict[str, Any], dict]:
     """(snapshots, meta) from `write_snapshots`' file: snapshots {'actor', 'norm': ObsNorm} with
     leaves [n_snapshots, ...]. ValueError naming the file if it is not such a file."""
@@ -164,4 +182,4 @@ def _actor_template(cfg: ExpertConfig, obs_dim: int):
 
 
 __all__ = ["ROLLOUT_FIELDS", "load_snapshots", "merge_snapshots", "plot_curves", "select_rounds",
-           "write_curves", "write_snapshots"]
+           "select_runs", "write_curves", "write_snapshots"]
