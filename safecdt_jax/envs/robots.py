@@ -179,13 +179,13 @@ class CarRobot(Robot):
     wheel_radius: float = 0.05  # m
     torque_limit: float = 0.02  # N m: the reference actuator force range (sets the action scale)
     wheel_damping: float = 0.001  # N m s/rad: the reference hinge damping (rim speed 1 m/s)
-    slip_gain: float = 0.25  # N s/m: k_w per wheel at its static load (native: 0.23-0.4)
-    side_gain: float = 0.557  # N s/m: k_side per wheel at its static load (native contact slip)
-    sliding: float = 0.78  # a wheel's sliding force / (mu N) (native: 0.66-0.80)
-    caster_gain: float = 0.3  # N s/m: the rolling caster's drag at its static load (native 0.36)
-    caster_sliding: float = 0.65  # the caster's sliding force / (mu N_c) (native: 0.68-0.88)
-    yaw_scrub: float = 0.005  # N m s: contact scrub against yawing beyond the contact forces
-    load_transfer: float = 0.45  # h / L: effective centre-of-mass height over wheelbase
+    slip_gain: float = 0.3061  # N s/m: k_w per wheel at its static load (native: 0.23-0.4)
+    side_gain: float = 0.4256  # N s/m: k_side per wheel at its static load (native contact slip)
+    sliding: float = 0.8683  # a wheel's limit force / (mu N) (native: 0.66-0.80 sliding)
+    caster_gain: float = 0.4248  # N s/m: the rolling caster's drag at its static load (native 0.36)
+    caster_sliding: float = 0.7216  # the caster's limit force / (mu N_c) (native: 0.68-0.88)
+    yaw_scrub: float = 0.0065  # N m s: contact scrub against yawing beyond the contact forces
+    load_transfer: float = 0.2314  # h / L: effective centre-of-mass height over wheelbase
     friction: float = 1.0  # tyre-floor friction coefficient, as the reference's floor
     caster_roll: float = 0.9  # rolling fraction of the ball (native: 0.90-0.92 below the cap)
     caster_spin_cap: float = 6.0  # rad/s: the ball slides beyond (native: 5.4-6.1 rad/s)
@@ -206,9 +206,12 @@ class CarRobot(Robot):
     # How a contact's force meets its friction limit L: 0 (physics 5) clips the linear force s
     # at L; n > 0 bends it smoothly, |F| = s / (1 + (s / L)^n)^(1/n), as native MuJoCo's soft
     # contacts do: its car gains speed ever more slowly as it nears top speed, and so loses
-    # more to each spin pulse. n = 1.82 with the constants `experiments.car_fit` fits is the
-    # physics-6 candidate (docs/research/environment-fidelity.md; issue 48).
-    saturation_power: float = 0.0
+    # more to each spin pulse. Physics 6: n = 1.82, with the gains, limits, scrub and load
+    # transfer above refitted jointly by `experiments.car_fit` to native turning, low-torque
+    # drive and speed-up (RMS 0.134 -> 0.045; docs/research/environment-fidelity.md, issue 48).
+    # Physics 5's constants: slip 0.25, side 0.557, sliding 0.78, caster 0.3 / 0.65, scrub
+    # 0.005, load transfer 0.45, n = 0.
+    saturation_power: float = 1.82
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
