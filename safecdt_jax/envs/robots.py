@@ -209,8 +209,7 @@ class CarRobot(Robot):
     # more to each spin pulse. Physics 6: n = 1.82, with the gains, limits, scrub and load
     # transfer above refitted jointly by `experiments.car_fit` to native turning, low-torque
     # drive and speed-up (RMS 0.134 -> 0.045; docs/research/environment-fidelity.md, issue 48).
-    # Physics 5's constants: slip 0.25, side 0.557, sliding 0.78, caster 0.3 / 0.65, scrub
-    # 0.005, load transfer 0.45, n = 0.
+    # Physics 5 was n = 0 with the constants `experiments.car_fit.PHYSICS_5` keeps.
     saturation_power: float = 1.82
 
     def _loads(self) -> np.ndarray:
