@@ -9,11 +9,12 @@ data (`--edges data`: token ramp edges at the data's quantiles alone, as before 
 in the target task at B = 30 with `--seeds` deployment seeds x 50 episodes:
 - zero-shot at the fixed cost ratios 0.2 / 0.4 / 0.6 / 0.8 / 1.0 (the paper's Table 5), one sweep;
 - Safe-CDT and naive LoRA under each LoRA label rule (`DeployConfig.lora_labels`).
+With `--edges span` the checkpoints are the cache's, the ones `safecdt-jax paper` deploys.
 Per (pair, rule, variant) the table gives the mean over checkpoints x seeds of VR, cost, cost
 over episodes 41-50 and the drift (episodes 41-50 minus 1-10), each with its spread across
 pretraining seeds (std of the checkpoints' means) and across deployment seeds (mean of the
-checkpoints' seed stds). Checkpoints and every sweep's results.json live under `--work`
-(default `runs/levers`) and are reused, so an interrupted run continues.
+checkpoints' seed stds). Every sweep's results.json (and `--edges data`'s checkpoints) live
+under `--work` (default `runs/levers`) and are reused, so an interrupted run continues.
 """
 
 from __future__ import annotations
@@ -31,17 +32,25 @@ BUDGET = 30.0
 
 
 def checkpoint(pair: str, seed: int, edges: str, work: Path) -> Path:
-    """The pair's source-task checkpoint for `seed`, pretrained into `work` unless there."""
+    """The pair's source-task checkpoint for `seed`. `--edges span` (today's default tokens):
+    the cache's checkpoint that `safecdt-jax paper` uses for that pretraining seed
+    (`$SAFECDT_CACHE/checkpoints/TASK-cpu[-seedK]`), trained there only if missing, so this
+    experiment and the report share checkpoints. `--edges data`: pretrained into `work`."""
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pairs import parse_pair
-    from safecdt_jax.pretrain import default_pretrain, pretrain
+    from safecdt_jax.paths import checkpoint_dir
+    from safecdt_jax.pretrain import default_pretrain, ensure_checkpoint, pretrain
+    from safecdt_jax.pretrain.seeds import default_outs
 
+    source = parse_pair(pair)[0]
+    if edges == "span":
+        out = checkpoint_dir(source, "cpu") if seed == 0 else default_outs(source, "cpu", [seed])[0]
+        return ensure_checkpoint(ensure_source_data(source), source, "cpu", seed=seed, out=out,
+                                 progress=False)
     out = work / "ckpt" / f"{pair}_{edges}_s{seed}"
     if not (out / "done").exists():
-        cfg = default_pretrain("cpu", seed=seed)
-        if edges == "data":
-            cfg = cfg.replace(return_span=(), cost_span=())
-        pretrain(ensure_source_data(parse_pair(pair)[0]), out, preset="cpu", config=cfg,
+        cfg = default_pretrain("cpu", seed=seed).replace(return_span=(), cost_span=())
+        pretrain(ensure_source_data(source), out, preset="cpu", config=cfg,
                  overwrite=True, progress=False)
         (out / "done").write_text("")
     return out
