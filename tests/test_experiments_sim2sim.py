@@ -1,5 +1,7 @@
 """experiments/sim2sim.py: the agreement band, layout statistics and target names (no peer venv)."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -59,3 +61,20 @@ def test_car_fit_loss_weights_switching_turns_and_leaves_random_drift_out_by_def
     assert loss(off("random", 0, 0.1), native) == 0.0  # reported, not fitted
     assert loss(off("random", 0, 0.1), native, random_weight=5.0) == pytest.approx(
         0.5 / np.sqrt(n))
+
+
+def test_sensor_reliance_groups_tile_the_cars_sensors_and_reject_other_robots():
+    from experiments.sensor_reliance import GROUPS, main
+    from experiments.sim2sim import SENSOR_NAMES
+
+    names = SENSOR_NAMES["Car"]
+    spans = sorted(GROUPS.values())
+    assert spans[0][0] == 0 and spans[-1][1] == len(names) == 24
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(spans))  # no gap, no overlap
+    prefix = {"accelerometer": "acc", "velocimeter": "vel", "gyro": "gyro",
+              "magnetometer": "mag", "ball angular velocity": "ballangvel",
+              "ball orientation": "ballquat"}
+    for group, (lo, hi) in GROUPS.items():
+        assert all(n.startswith(prefix[group] + "_") for n in names[lo:hi]), group
+    with pytest.raises(SystemExit, match="the sensor groups are the Car's, got PointCircle2"):
+        main(["--task", "PointCircle2", "--no-native"])
