@@ -40,29 +40,19 @@ def expert_rollouts(task: str, limit: float, episodes: int, deterministic: bool,
     import jax
     import jax.numpy as jnp
 
-    from experiments.sim2sim import pick_expert
+    from experiments.sim2sim import expert_act, pick_expert
     from safecdt_jax import envs
     from safecdt_jax.experts.collect import snapshot_path
-    from safecdt_jax.experts.config import ExpertConfig
-    from safecdt_jax.experts.export import load_snapshots
-    from safecdt_jax.experts.networks import action_dist
 
     source = task[:-1] + "1"
-    snaps, meta = load_snapshots(snapshot_path(source))
-    cfg = ExpertConfig.from_json(meta["expert"])
-    one = jax.tree.map(lambda x: x[pick_expert(source, limit)], snaps)
+    act = expert_act(snapshot_path(source), pick_expert(source, limit), deterministic)
     env, params = envs.make(task)
     lo, hi = frozen or (0, 0)
     mask = (jnp.arange(env.observation_size) >= lo) & (jnp.arange(env.observation_size) < hi)
 
-    def act(key, obs):
-        z = one["norm"].apply(jnp.where(mask, fill, obs), cfg.obs_var_floor, cfg.obs_clip)
-        mean, std = action_dist(one["actor"], z, cfg.hidden, cfg.min_std)
-        return mean if deterministic else mean + std * jax.random.normal(key, mean.shape)
-
     def episode(key):
         def step(state, k):
-            a = act(k, state.obs)
+            a = act(k, jnp.where(mask, fill, state.obs))
             nxt = env.step(state, a, params)
             return nxt, (nxt.cost, nxt.obs, a)
 

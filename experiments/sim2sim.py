@@ -362,6 +362,27 @@ def target_task(task: str) -> str:
     return task[:-1] + "2"
 
 
+def expert_act(snapshot_file: Path, index: int, deterministic: bool):
+    """`act(key, obs) -> action` of snapshot `index` of an expert snapshot file: the policy's
+    mean, or a sample of its Gaussian (as the expert explored), from raw observations."""
+    import jax
+
+    from safecdt_jax.experts.config import ExpertConfig
+    from safecdt_jax.experts.export import load_snapshots
+    from safecdt_jax.experts.networks import action_dist
+
+    snaps, meta = load_snapshots(snapshot_file)
+    cfg = ExpertConfig.from_json(meta["expert"])
+    one = jax.tree.map(lambda x: x[index], snaps)
+
+    def act(key, obs):
+        z = one["norm"].apply(obs, cfg.obs_var_floor, cfg.obs_clip)
+        mean, std = action_dist(one["actor"], z, cfg.hidden, cfg.min_std)
+        return mean if deterministic else mean + std * jax.random.normal(key, mean.shape)
+
+    return act
+
+
 def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed: int,
                 deterministic: bool, run_in: str | None = None) -> dict[str, np.ndarray]:
     """Per-episode return, cost, goals and cost steps per term (`TERMS`, absent terms 0) of one
@@ -371,20 +392,13 @@ def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed:
 
     from safecdt_jax import envs
     from safecdt_jax.envs.rollout import scan_episode
-    from safecdt_jax.experts.config import ExpertConfig
-    from safecdt_jax.experts.export import load_snapshots
-    from safecdt_jax.experts.networks import action_dist
 
-    snaps, meta = load_snapshots(snapshot_file)
-    cfg = ExpertConfig.from_json(meta["expert"])
-    one = jax.tree.map(lambda x: x[index], snaps)
+    act = expert_act(snapshot_file, index, deterministic)
     env, params = envs.make(run_in or task)
     zero = jnp.float32(0.0)
 
     def policy(key, state):
-        z = one["norm"].apply(state.obs, cfg.obs_var_floor, cfg.obs_clip)
-        mean, std = action_dist(one["actor"], z, cfg.hidden, cfg.min_std)
-        return mean if deterministic else mean + std * jax.random.normal(key, mean.shape)
+        return act(key, state.obs)
 
     def record(s):
         terms = jnp.stack([(s.info.get(k, zero) > 0).astype(jnp.float32) for k in TERMS])
