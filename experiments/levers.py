@@ -33,20 +33,18 @@ BUDGET = 30.0
 
 def checkpoint(pair: str, seed: int, edges: str, work: Path) -> Path:
     """The pair's source-task checkpoint for `seed`. `--edges span` (today's default tokens):
-    the cache's checkpoint that `safecdt-jax paper` uses for that pretraining seed
-    (`$SAFECDT_CACHE/checkpoints/TASK-cpu[-seedK]`), trained there only if missing, so this
+    the checkpoint `safecdt-jax paper` deploys for that pretraining seed, from the cache
+    (`paper.run.prepare_checkpoints`, which trains the seeds up to it where missing), so this
     experiment and the report share checkpoints. `--edges data`: pretrained into `work`."""
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pairs import parse_pair
-    from safecdt_jax.paths import checkpoint_dir
-    from safecdt_jax.pretrain import default_pretrain, ensure_checkpoint, pretrain
-    from safecdt_jax.pretrain.seeds import default_outs
+    from safecdt_jax.paper.plan import PaperPlan
+    from safecdt_jax.paper.run import prepare_checkpoints
+    from safecdt_jax.pretrain import default_pretrain, pretrain
 
-    source = parse_pair(pair)[0]
     if edges == "span":
-        out = checkpoint_dir(source, "cpu") if seed == 0 else default_outs(source, "cpu", [seed])[0]
-        return ensure_checkpoint(ensure_source_data(source), source, "cpu", seed=seed, out=out,
-                                 progress=False)
+        return prepare_checkpoints(pair, PaperPlan(pretrain_seeds=seed + 1), progress=False)[seed]
+    source = parse_pair(pair)[0]
     out = work / "ckpt" / f"{pair}_{edges}_s{seed}"
     if not (out / "done").exists():
         cfg = default_pretrain("cpu", seed=seed).replace(return_span=(), cost_span=())
