@@ -133,7 +133,8 @@ def _program(power: float | None):
                                   **{f: theta[i] for i, f in enumerate(FIELDS)})
 
         def step(carry, action):
-            data, state = car.physics(model, carry[0], action, params, carry[1])
+            data, state = car.physics(model, carry[0], action, params, carry[1],
+                                        jax.random.PRNGKey(0))  # the caster's draw: no force
             v = rot2(data.qpos[2]).T @ data.qvel[:2]
             return (data, state), jnp.stack([-v[1], data.qvel[2]])
 

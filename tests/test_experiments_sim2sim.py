@@ -78,3 +78,24 @@ def test_sensor_reliance_groups_tile_the_cars_sensors_and_reject_other_robots():
         assert all(n.startswith(prefix[group] + "_") for n in names[lo:hi]), group
     with pytest.raises(SystemExit, match="the sensor groups are the Car's, got PointCircle2"):
         main(["--task", "PointCircle2", "--no-native"])
+
+
+def test_caster_ball_stats_rotate_the_spin_into_the_chassis_frame():
+    """A ball whose orientation is a quarter turn about z reads its spin along its own y; in the
+    chassis frame that is -x (the roll), here alternating 2 and 4 rad/s: percentiles from the
+    known values, lag-1 autocorrelation -1, no spin about y or z; a Point task is refused."""
+    from experiments.caster_ball import WARMUP, ball_stats, main
+
+    steps = WARMUP + 10
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # 90 degrees about z
+    roll = np.tile([2.0, 4.0], steps // 2)
+    obs = np.zeros((1, steps, 24))
+    obs[0, :, 4] = -0.5  # forward at 0.5 m/s (the velocimeter's y points backward)
+    obs[0, :, 12:15] = (rot.T @ np.stack([roll, 0 * roll, 0 * roll])).T
+    obs[0, :, 15:24] = rot.reshape(-1)
+    s = ball_stats(obs)
+    assert s["speed"] == pytest.approx(0.5)
+    assert s["roll_pct"][0] == 2.0 and s["roll_pct"][-1] == 4.0 and s["roll_pct"][2] == 3.0
+    assert s["lag1"] == pytest.approx(-1.0) and s["std_y"] < 1e-12 and s["std_z"] < 1e-12
+    with pytest.raises(SystemExit, match="the caster ball is the Car's, got PointCircle1"):
+        main(["--task", "PointCircle1"])

@@ -10,7 +10,13 @@ import numpy as np
 import pytest
 
 from safecdt_jax.experts import CostSchedule, ExpertConfig, expert_preset, make_train
-from safecdt_jax.experts.collect import DsrlSize, filter_to_size, grid_filter
+from safecdt_jax.experts.collect import (
+    CarefulFloor,
+    DsrlSize,
+    careful_floor,
+    filter_to_size,
+    grid_filter,
+)
 from safecdt_jax.experts.config import NO_LIMIT
 from safecdt_jax.experts.networks import ObsNorm
 from safecdt_jax.experts.ppo_lag import PID, cost_limit, gae, pid_step
@@ -204,6 +210,30 @@ def test_grid_filter_caps_bins_and_drops_costly_episodes():
     assert per_bin == 1 and idx.size == 4  # cap 2 keeps 7 > 6: one per occupied cell
 
 
+def test_careful_floor_swaps_in_the_most_competent_careful_policies():
+    # Episodes 0-9: a policy at mean cost 20; 10-13: careful A (mean cost 2, return 5);
+    # 14-17: careful B (mean cost 4, return 15); 18: careful but its episode is over the cap;
+    # 19: careful at exactly the floor's cost (mean cost 5, return 1).
+    pc = np.array([20.0] * 10 + [2.0] * 4 + [4.0] * 4 + [3.0, 5.0])
+    pr = np.array([30.0] * 10 + [5.0] * 4 + [15.0] * 4 + [30.0, 1.0])
+    costs = np.where(np.arange(20) == 18, 500.0, 1.0)
+    kept = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 10])  # one careful episode in ten
+    rng = np.random.default_rng(0)
+    out = careful_floor(rng, kept, costs, pc, pr, 120.0, CarefulFloor(5.0, 0.3))
+    assert out.size == 10 and np.all(np.diff(out) > 0)
+    careful = out[pc[out] <= 5]
+    assert careful.size == 3 and 10 in careful          # 30%: two swapped in, the old one kept
+    assert set(careful) - {10} <= {14, 15, 16, 17}      # from B, the higher policy return
+    # Too few careful episodes for the share: every one under the cap comes in, none over it.
+    out = careful_floor(rng, kept, costs, pc, pr, 120.0, CarefulFloor(5.0, 0.9))
+    assert set(out[pc[out] <= 5]) == {10, 11, 12, 13, 14, 15, 16, 17, 19} and out.size == 10
+    # A share already met, or no careful policy: nothing changes.
+    np.testing.assert_array_equal(
+        careful_floor(rng, kept, costs, pc, pr, 120.0, CarefulFloor(5.0, 0.1)), kept)
+    np.testing.assert_array_equal(
+        careful_floor(rng, kept, costs, pc, pr, 120.0, CarefulFloor(1.0, 0.5)), kept)
+
+
 def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
     from typer.testing import CliRunner
 
@@ -239,7 +269,7 @@ def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):
     snap, cost = data.episode_info["snapshot"], data.episode_info["policy_cost"]
     for k in np.unique(snap):
         assert np.ptp(cost[snap == k]) == 0
-    assert data.attrs["expert_collector_version"] == 3
+    assert data.attrs["expert_collector_version"] == 4  # the careful floor
 
 
 @pytest.mark.parametrize("args,message", [

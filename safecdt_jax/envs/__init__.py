@@ -36,8 +36,10 @@ from safecdt_jax.envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State  # n
 # caster's slip and the chassis chatter (sim2sim); Car 4: contact forces with friction limits
 # (turning on one wheel, mixed drive); Car 5: the chassis roll reaches the velocimeter's x
 # (sim2sim: its std was a quarter of the native one); Car 6: contact forces bend smoothly onto
-# their friction limits and the traction constants are refitted (native speed-up and switching).
-PHYSICS_VERSIONS = {"Car": 6, "Point": 2}
+# their friction limits and the traction constants are refitted (native speed-up and switching);
+# Car 7: the caster ball stick-slips above 6 rad/s (experts had read its steady roll as an
+# odometer).
+PHYSICS_VERSIONS = {"Car": 7, "Point": 2}
 # Per task: bump when a task's rules change (rewards, costs, objects). Goal 2: vases are knocked
 # ahead and creep to rest, and cost as in Safety-Gymnasium (2026-12-06; level 1's costs are
 # unchanged, so level-1 data and experts stay valid).

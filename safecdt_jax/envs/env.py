@@ -77,7 +77,8 @@ class SafetyEnv:
         finite = jnp.isfinite(action)
         action = jnp.clip(jnp.where(finite, action, 0.0), -1.0, 1.0)
         key, k_goal = jax.random.split(state.key)
-        data, robot = self.robot.physics(self.model, state.data, action, params, state.robot)
+        data, robot = self.robot.physics(self.model, state.data, action, params, state.robot,
+                                         _physics_key(k_goal))
         reward, costs, goal_met, task = self.task.step(k_goal, params, self.robot, data,
                                                        state.task, self.dt)
         cost = jnp.any(jnp.stack(list(costs.values())) > 0).astype(jnp.float32)
@@ -94,6 +95,11 @@ class SafetyEnv:
         sensors = self.robot.sensors(data, robot, key)
         return jnp.concatenate([sensors, self.task.observe(params, data, task)]).astype(
             jnp.float32)
+
+
+def _physics_key(key: jax.Array) -> jax.Array:
+    """The robot's own physics key of a step, folded off the step's key (as `_noise_key`)."""
+    return jax.random.fold_in(key, 0xCA57E)
 
 
 def _noise_key(key: jax.Array) -> jax.Array:

@@ -41,8 +41,10 @@ class RobotLike(Protocol):
         """The action as the actuators execute it, where that is state-free (data record it)."""
 
     def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
-                state: dict[str, jax.Array]) -> tuple[mjx.Data, dict[str, jax.Array]]:
-        """One env step of physics under `action` in [-1, 1]: (data, robot state)."""
+                state: dict[str, jax.Array],
+                key: jax.Array) -> tuple[mjx.Data, dict[str, jax.Array]]:
+        """One env step of physics under `action` in [-1, 1]: (data, robot state); `key` for
+        any randomness of the robot's own (the Car's caster stick-slip)."""
 
     def sensors(self, data: mjx.Data, state: dict[str, jax.Array], key: jax.Array) -> jax.Array:
         """The `n_sensors` body-frame sensor readings; `key` for any sensor noise."""

@@ -135,8 +135,9 @@ class PointRobot(Robot):
     """Safety-Gymnasium's Point: a thrust along body x and a yaw velocity servo, both in MJX."""
 
     def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
-                state: dict) -> tuple[mjx.Data, dict]:
-        """Advances N_SUBSTEPS physics steps under `action` ([2], already in [-1, 1])."""
+                state: dict, key: jax.Array) -> tuple[mjx.Data, dict]:
+        """Advances N_SUBSTEPS physics steps under `action` ([2], already in [-1, 1]); `key`
+        unused (the Point draws nothing)."""
         m = _scaled_model(model, params)
         data = data.replace(ctrl=action)
         data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, d), data)
@@ -188,7 +189,13 @@ class CarRobot(Robot):
     load_transfer: float = 0.2314  # h / L: effective centre-of-mass height over wheelbase
     friction: float = 1.0  # tyre-floor friction coefficient, as the reference's floor
     caster_roll: float = 0.9  # rolling fraction of the ball (native: 0.90-0.92 below the cap)
-    caster_spin_cap: float = 6.0  # rad/s: the ball slides beyond (native: 5.4-6.1 rad/s)
+    caster_spin_cap: float = 6.0  # rad/s: the ball rolls steadily below it, stick-slips above
+    # The stick-slip band of the ball's roll rate once the rolling rate n exceeds the cap c: a
+    # fresh rate each step, uniform between max(0, c - floor (n - c)) and c + top (n - c).
+    # Fitted to native MuJoCo held at a = 0.01 / 0.015 / 0.019 (rolling rates 6.6 / 11 / 13.8
+    # rad/s; its 5-95% roll rates 2.3-6.1, 0.1-8.2, 0.1-9.3 rad/s). Physics 7.
+    caster_slip_top: float = 0.5
+    caster_slip_floor: float = 7.0
     # Std of the chassis chatter per sensor at full drive (fitted to native MuJoCo under random
     # actions; accelerometer x/y: the part beyond the planar body's own acceleration).
     chatter_std: tuple[float, ...] = (2.3, 3.6, 4.9, 0.0, 0.0, 0.048, 0.45, 0.65, 0.0, 0.0, 0.0,
@@ -309,9 +316,10 @@ class CarRobot(Robot):
         return jnp.clip(action, -self.torque_limit, self.torque_limit)
 
     def physics(self, model: mjx.Model, data: mjx.Data, action: jax.Array, params: EnvParams,
-                state: dict) -> tuple[mjx.Data, dict]:
+                state: dict, key: jax.Array) -> tuple[mjx.Data, dict]:
         """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale;
-        rolls the caster and records the drive level (mean |torque| / limit) for the chatter."""
+        rolls the caster (its stick-slip drawn with `key`) and records the drive level (mean
+        |torque| / limit) for the chatter."""
         m = _scaled_model(model, params)
         torque = params.gear_scale * self.executed_action(action)
         loads = jnp.asarray(self._loads(), jnp.float32)
@@ -324,28 +332,39 @@ class CarRobot(Robot):
         data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, push(d)), data)
         data = mjx.forward(m, push(data))
         dt = N_SUBSTEPS * self.timestep
-        quat = _quat_integrate(state["caster_quat"], self._caster_angvel(data, state), dt)
+        spin = self.caster_spin(data, jax.random.uniform(key))
+        quat = _quat_integrate(state["caster_quat"], _quat_to_mat(state["caster_quat"]).T @ spin,
+                               dt)
         drive = jnp.mean(jnp.abs(torque)) / self.torque_limit
-        return data, {"caster_quat": quat, "drive": drive}
+        return data, {"caster_quat": quat, "caster_spin": spin, "drive": drive}
 
-    def _caster_spin(self, data: mjx.Data) -> jax.Array:
-        """The ball's angular velocity relative to the chassis, in the chassis frame (rad/s).
+    def caster_spin(self, data: mjx.Data, u: jax.Array) -> jax.Array:
+        """The ball's angular velocity relative to the chassis, in the chassis frame (rad/s), for
+        a stick-slip draw `u` in [0, 1].
 
         Native MuJoCo's ball rolls at `caster_roll` of the no-slip rate (z x v) / r while that
-        stays under `caster_spin_cap`, and slides beyond it (its joint damping against the
-        contact's friction torque). It does not spin about the vertical relative to the
-        chassis: the joint damping drags it round with the chassis, the contact's torsional
-        friction is far weaker.
+        stays under `caster_spin_cap`. Above it the ball stick-slips: its rate jumps from step
+        to step across a band that widens with the excess (at full speed 0-10 rad/s, median
+        4 against the no-slip 15.6), so the ball's orientation says little about the distance
+        driven. A policy trained on a steadily rolling ball reads it as an odometer (physics 6:
+        freezing it cut a CarCircle2 expert's cost 199.5 -> 83.7). The ball does not spin about
+        the vertical relative to the chassis: the joint damping drags it round with the
+        chassis, the contact's torsional friction is far weaker (native: std 0.01-0.17 rad/s).
         """
         v = self.contact_velocities(data)[2]
-        spin = self.caster_roll * jnp.array([-v[1], v[0]]) / self.wheel_radius
-        norm = jnp.linalg.norm(spin)
-        spin *= jnp.minimum(1.0, self.caster_spin_cap / jnp.maximum(norm, 1e-12))
+        roll = self.caster_roll * jnp.array([-v[1], v[0]]) / self.wheel_radius
+        rate = jnp.linalg.norm(roll)
+        excess = jnp.maximum(rate - self.caster_spin_cap, 0.0)
+        low = jnp.maximum(self.caster_spin_cap - self.caster_slip_floor * excess, 0.0)
+        high = self.caster_spin_cap + self.caster_slip_top * excess
+        slipping = jnp.where(rate > self.caster_spin_cap, low + u * (high - low), rate)
+        spin = roll * slipping / jnp.maximum(rate, 1e-12)
         return jnp.concatenate([spin, jnp.zeros(1)])
 
-    def _caster_angvel(self, data: mjx.Data, state: dict) -> jax.Array:
-        """`_caster_spin` in the ball's own frame, as MuJoCo's ballangvel sensor reports it."""
-        return _quat_to_mat(state["caster_quat"]).T @ self._caster_spin(data)
+    def _caster_angvel(self, state: dict) -> jax.Array:
+        """The last step's ball spin in the ball's own frame, as MuJoCo's ballangvel sensor
+        reports it (rad/s)."""
+        return _quat_to_mat(state["caster_quat"]).T @ state["caster_spin"]
 
     def chatter(self, key: jax.Array, state: dict) -> jax.Array:
         """Contact vibration of the sensors [24]: zero-mean Gaussian noise whose std per channel
@@ -367,14 +386,16 @@ class CarRobot(Robot):
     def sensors(self, data: mjx.Data, state: dict, key: jax.Array) -> jax.Array:
         """The 24 Car sensors: the 12 planar ones, ballangvel_rear (3), ballquat_rear as 3x3 (9),
         plus the contact chatter (`chatter`) drawn with `key`."""
-        ang = self._caster_angvel(data, state)
+        ang = self._caster_angvel(state)
         mat = _quat_to_mat(state["caster_quat"]).reshape(-1)
         return jnp.concatenate([planar_sensors(data), ang, mat]) + self.chatter(key, state)
 
     def init_state(self) -> dict[str, jax.Array]:
         """`caster_quat`: the caster's orientation relative to the chassis, identity at reset as
-        in the reference; `drive`: the last step's mean |torque| / limit, 0 at rest."""
-        return {"caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0]), "drive": jnp.float32(0.0)}
+        in the reference; `caster_spin`: its last spin in the chassis frame (rad/s, 0 at rest);
+        `drive`: the last step's mean |torque| / limit, 0 at rest."""
+        return {"caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0]), "caster_spin": jnp.zeros(3),
+                "drive": jnp.float32(0.0)}
 
 
 def _quat_to_mat(q: jax.Array) -> jax.Array:

@@ -42,8 +42,9 @@ from safecdt_jax.paths import DEFAULT_ACTIONS
 
 SNAPSHOT_DIR = Path(__file__).parent / "snapshots"
 # 2: executed actions, unless the 'actions' attribute says otherwise; 3: each episode carries
-# its policy's mean return and cost over all of the policy's rollouts, before the filter.
-EXPERT_COLLECTOR_VERSION = 3
+# its policy's mean return and cost over all of the policy's rollouts, before the filter;
+# 4: the careful floor (`CAREFUL_FLOOR`) after the grid filter.
+EXPERT_COLLECTOR_VERSION = 4
 
 # How an episode's actions are recorded: 'sampled' (the default, `paths.DEFAULT_ACTIONS`: the
 # policy's Gaussian sample clipped to the action box [-1, 1], DSRL's convention) or 'executed'
@@ -65,6 +66,20 @@ class DsrlSize(NamedTuple):
     episodes: int
     max_cost: float
 
+
+class CarefulFloor(NamedTuple):
+    """The least share of the kept episodes that come from careful policies: those whose mean
+    episode cost (over all their rollouts, `policy_cost`) is at most `max_policy_cost`."""
+
+    max_policy_cost: float
+    share: float
+
+
+# Why a floor: the grid filter balances episode outcomes, not behaviour policies. A careful
+# policy's episodes pile into the few cells at cost ~0, where the per-cell cap drops most of
+# them, so the careful experts of CarGoal1 / CarCircle1 supplied 8.4% / 1.8% of the episodes
+# (physics 6), too few for a clone to learn what a low cost token asks for.
+CAREFUL_FLOOR = CarefulFloor(max_policy_cost=5.0, share=0.10)
 
 # DSRL's source data sets (file names `{task}-{max cost}-{trajectories}.hdf5`).
 DSRL_SIZES = {
@@ -203,6 +218,26 @@ def filter_to_size(rng: np.random.Generator, costs, returns, size: DsrlSize,
     return kept, lo
 
 
+def careful_floor(rng: np.random.Generator, kept, costs, policy_costs, policy_returns,
+                  max_cost: float, floor: CarefulFloor = CAREFUL_FLOOR) -> np.ndarray:
+    """Sorted indices: `kept` with episodes of careful policies (policy-mean cost <=
+    `floor.max_policy_cost`, episode cost <= `max_cost`) swapped in until they are at least
+    `floor.share` of the kept count (or every careful episode is in), the count unchanged.
+    Swapped in: the most competent careful policies first (highest policy-mean return, its
+    episodes in random order); swapped out: random non-careful episodes."""
+    kept = np.asarray(kept, np.int64)
+    careful = (np.asarray(policy_costs) <= floor.max_policy_cost) & (np.asarray(costs) <= max_cost)
+    need = int(np.ceil(floor.share * kept.size)) - int(careful[kept].sum())
+    pool = np.setdiff1d(np.flatnonzero(careful), kept)
+    if need <= 0 or pool.size == 0:
+        return kept
+    order = np.lexsort((rng.permutation(pool.size), -np.asarray(policy_returns)[pool]))
+    add = pool[order[:need]]
+    others = kept[~careful[kept]]
+    drop = rng.choice(others, min(add.size, others.size), replace=False)
+    return np.sort(np.concatenate([np.setdiff1d(kept, drop), add[:drop.size]]))
+
+
 def _per_snapshot(n_snap: int, size: DsrlSize) -> int:
     """Episodes per snapshot (of `n_snap`) for twice the target count before filtering."""
     return max(1, -(-2 * size.episodes // n_snap))
@@ -225,13 +260,15 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
                    horizon: int | None = None, progress: Callable[[int], None] | None = None,
                    seed: int | None = None, actions: str = DEFAULT_ACTIONS) -> Dataset:
     """The source data of `task` from its expert snapshots (default: the committed file),
-    grid-filtered to DSRL's size (default `DSRL_SIZES[task]`), actions recorded as `actions`
-    says (`ACTION_RECORDINGS`).
+    grid-filtered to DSRL's size (default `DSRL_SIZES[task]`), then careful policies' episodes
+    swapped in up to `CAREFUL_FLOOR` (`careful_floor`), actions recorded as `actions` says
+    (`ACTION_RECORDINGS`).
 
     `per_snapshot` episodes per snapshot (default: enough for twice the target count). attrs
     add the filter's settings ('grid_filter': cbins, rbins, per-bin cap, max cost, episodes
-    before and after) to `rollout_snapshots`' provenance, and `seed` (the seed of `key`) if
-    given, which `ensure_source_data` checks.
+    before and after; 'careful_floor': the floor and how many episodes it swapped in) to
+    `rollout_snapshots`' provenance, and `seed` (the seed of `key`) if given, which
+    `ensure_source_data` checks.
     """
     from safecdt_jax.data.windows import episode_costs, episode_returns
 
@@ -244,13 +281,17 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
                             actions=actions)
     costs, returns = episode_costs(raw), episode_returns(raw)
     rng = np.random.default_rng(np.asarray(jax.random.bits(k_filter, (2,)), np.uint64))
-    kept, per_bin = filter_to_size(rng, costs, returns, size)
+    gridded, per_bin = filter_to_size(rng, costs, returns, size)
+    kept = careful_floor(rng, gridded, costs, raw.episode_info["policy_cost"],
+                         raw.episode_info["policy_return"], size.max_cost)
     data = select_episodes(raw, kept)
     attrs = dict(data.attrs) | {
         "episodes": int(kept.size),
         "grid_filter": {"cost_bins": 60, "reward_bins": 50, "per_bin": per_bin,
                         "max_cost": size.max_cost, "target": size.episodes,
-                        "episodes_before": int(costs.size), "episodes_after": int(kept.size)}}
+                        "episodes_before": int(costs.size), "episodes_after": int(kept.size)},
+        "careful_floor": {**CAREFUL_FLOOR._asdict(),
+                          "swapped_in": int(np.setdiff1d(kept, gridded).size)}}
     if seed is not None:
         attrs["seed"] = int(seed)
     return dataclasses.replace(data, attrs=Attrs(attrs))
@@ -302,10 +343,13 @@ def ensure_source_data(task: str, episodes: int | None = None, seed: int = 0,
 
 __all__ = [
     "ACTION_RECORDINGS",
+    "CAREFUL_FLOOR",
     "DSRL_SIZES",
     "EXPERT_COLLECTOR_VERSION",
     "SNAPSHOT_DIR",
+    "CarefulFloor",
     "DsrlSize",
+    "careful_floor",
     "ensure_source_data",
     "expert_dataset",
     "filter_to_size",
