@@ -239,3 +239,62 @@ def test_prepare_seeds_trains_the_other_pretraining_seeds_beside_the_first(tiny_
     assert prepare_seeds("PC1-PC2", plan, ckpt, progress=False) == got  # reused as they are
     assert (got[1] / str(first["step"])).stat().st_mtime_ns == stamp
     assert prepare_seeds("PC1-PC2", quick_plan(**TINY), ckpt) == [ckpt]
+
+
+def _collected(path, observations_shift=0.0, seed=0):
+    """The tiny expert episodes written as a seeded collection would write them (the attributes
+    `experts.collect.recipe_fields` reads), observations shifted by `observations_shift` (the
+    same recipe with other bits, as another kind of CPU collects it)."""
+    import dataclasses
+
+    from data_helpers import expert_episodes
+
+    from safecdt_jax.data.collect import write_collected
+    from safecdt_jax.data.dataset import Attrs
+
+    data = expert_episodes()
+    attrs = dict(data.attrs) | {"seed": seed, "grid_filter": {"max_cost": 120.0, "target": 4}}
+    data = dataclasses.replace(data, observations=data.observations + observations_shift,
+                               attrs=Attrs(attrs))
+    return write_collected(path, data)
+
+
+def test_identity_names_the_data_recipe_and_upgrades_records_keyed_on_the_same_bits(
+        tiny_run, tmp_path):
+    from safecdt_jax.paper.run import experiment_spec, load_record, run_experiment, seeded_identity
+    from safecdt_jax.pretrain import default_pretrain, pretrain
+
+    cfg = default_pretrain("tiny", steps=2, chunk=2)
+    here, there = (pretrain(_collected(tmp_path / f"{name}.hdf5", shift), tmp_path / name,
+                            preset="tiny", config=cfg, progress=False).path
+                   for name, shift in (("here", 0.0), ("there", 1e-3)))
+    # Same recipe, other bits: the same identity, which the bit-level (legacy) one tells apart.
+    assert checkpoint_identity(here) == checkpoint_identity(there)
+    assert checkpoint_identity(here)["data"].startswith("recipe-")
+    assert checkpoint_identity(here, legacy=True)["data"] != \
+        checkpoint_identity(there, legacy=True)["data"]
+    assert checkpoint_identity(here, recipe="recipe-other") != checkpoint_identity(here)
+    # Data without a recipe (a raw rollout: no seed) keep the bit-level identity.
+    _, plain, _ = tiny_run
+    assert checkpoint_identity(plain) == checkpoint_identity(plain, legacy=True)
+
+    # A record keyed on these checkpoints' bits is reused and its spec rewritten; one keyed on
+    # other bits is not.
+    plan = quick_plan(**TINY)
+    e = next(x for x in experiments(plan) if x.key == "PC1-PC2_main")
+    folder = tmp_path / "experiments"
+    folder.mkdir()
+    legacy = {"spec": experiment_spec(e, plan, seeded_identity([here], legacy=True)),
+              "seconds": 5.0, "finished": "2026-12-07 03:00:00", "results": {"made": "here"}}
+    (folder / f"{e.key}.json").write_text(json.dumps(legacy))
+    logs: list[str] = []
+    record = run_experiment(e, plan, [here], folder, progress=False, log=logs.append)
+    current = json.loads(json.dumps(experiment_spec(e, plan, seeded_identity([here]))))
+    assert record["results"] == {"made": "here"} and record["spec"] == current
+    assert json.loads((folder / f"{e.key}.json").read_text())["spec"] == current
+    assert any("now names the data's recipe" in line for line in logs)
+    assert load_record(folder / f"{e.key}.json", current) is not None
+    other = experiment_spec(e, plan, seeded_identity([there], legacy=True))
+    (folder / "other.json").write_text(json.dumps(dict(legacy, spec=other)))
+    assert load_record(folder / "other.json",
+                       experiment_spec(e, plan, seeded_identity([here], legacy=True))) is None

@@ -17,9 +17,9 @@ import functools
 import hashlib
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -297,24 +297,48 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
     return dataclasses.replace(data, attrs=Attrs(attrs))
 
 
+def recipe_fields(attrs: Mapping[str, Any]) -> dict[str, Any] | None:
+    """The inputs an expert data set was collected from, as plain values: task, the snapshot
+    file's SHA-256, collector and physics versions, seed, the filter's max cost and target count,
+    and the action recording (files without it are 'executed'). None for data that
+    `expert_dataset` did not collect with a seed (raw rollouts, other behaviours)."""
+    grid = attrs.get("grid_filter")
+    if attrs.get("behaviour") != "expert" or "seed" not in attrs or grid is None:
+        return None
+    grid = json.loads(grid) if isinstance(grid, str) else grid
+    return {"task": str(attrs["task"]), "snapshot_sha256": str(attrs["snapshot_sha256"]),
+            "collector": int(attrs["expert_collector_version"]),
+            "physics": int(attrs["physics_version"]), "seed": int(attrs["seed"]),
+            "max_cost": float(grid["max_cost"]), "target": int(grid["target"]),
+            "actions": str(attrs.get("actions", "executed"))}
+
+
+def data_recipe(attrs: Mapping[str, Any]) -> str | None:
+    """A digest of `recipe_fields` ('recipe-' and 32 hex digits), or None where they are None.
+
+    Equal recipes give the same episodes on the same kind of CPU, and episodes that differ only
+    in float rounding on another kind (XLA's CPU kernels round differently, and the rollouts
+    amplify it): what keys finished experiments across machines (`paper.run`)."""
+    fields = recipe_fields(attrs)
+    if fields is None:
+        return None
+    text = json.dumps(fields, sort_keys=True).encode()
+    return "recipe-" + hashlib.blake2b(text, digest_size=16).hexdigest()
+
+
 def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int,
                actions: str = DEFAULT_ACTIONS) -> bool:
     """Whether `path` holds expert data of `task` from the committed snapshots (same SHA-256),
     this collector and physics version, `seed`, the filter's target size and the action
-    recording (files without the attribute are 'executed')."""
+    recording (`recipe_fields`)."""
     from safecdt_jax.data.collect import file_attrs
 
     attrs = file_attrs(path)
-    if attrs is None or attrs.get("behaviour") != "expert":
-        return False
-    sha = snapshot_sha256(snapshot_path(task))
-    grid = json.loads(attrs.get("grid_filter", "{}"))
-    return (attrs.get("task") == task and attrs.get("snapshot_sha256") == sha
-            and attrs.get("expert_collector_version") == EXPERT_COLLECTOR_VERSION
-            and attrs.get("physics_version") == envs.physics_version(task)
-            and attrs.get("seed") == seed and grid.get("max_cost") == size.max_cost
-            and attrs.get("actions", "executed") == actions
-            and grid.get("target") == size.episodes)
+    want = {"task": task, "snapshot_sha256": snapshot_sha256(snapshot_path(task)),
+            "collector": EXPERT_COLLECTOR_VERSION, "physics": envs.physics_version(task),
+            "seed": seed, "max_cost": float(size.max_cost), "target": size.episodes,
+            "actions": actions}
+    return attrs is not None and recipe_fields(attrs) == want
 
 
 def ensure_source_data(task: str, episodes: int | None = None, seed: int = 0,
@@ -350,12 +374,14 @@ __all__ = [
     "CarefulFloor",
     "DsrlSize",
     "careful_floor",
+    "data_recipe",
     "ensure_source_data",
     "expert_dataset",
     "filter_to_size",
     "grid_filter",
     "is_current",
     "planned_episodes",
+    "recipe_fields",
     "rollout_snapshots",
     "snapshot_path",
     "target_size",

@@ -4,7 +4,11 @@ that is not already finished, and keep each result in its own file.
 Each experiment writes `OUT/experiments/PAIR_NAME.json` atomically with its spec (what made it:
 counts, runs, task, the checkpoint's identity), its wall time and its results. A rerun loads
 every file whose spec equals the current one and runs only the rest, so an interrupted suite
-continues where it stopped and a changed plan reruns only what it changes. Under N cooperating
+continues where it stopped and a changed plan reruns only what it changes. A checkpoint of
+collected expert data is identified by the data's recipe, not its bits, so a suite continues on
+another kind of CPU, where the same recipe collects episodes that differ in float rounding
+(`checkpoint_identity`); a record keyed the older way on the bits is upgraded where the bits
+here are the same. Under N cooperating
 processes (`safecdt_jax.distributed`, on a shared disk) the deployment sweeps shard their seeds
 over every process; process 0 alone prepares checkpoints, trains baselines and writes files.
 """
@@ -78,33 +82,54 @@ def prepare_seeds(pair: str, plan: PaperPlan, first: Path, progress: bool = True
     return [first, *outs]
 
 
-def checkpoint_identity(ckpt: str | os.PathLike) -> dict[str, Any]:
+def checkpoint_identity(ckpt: str | os.PathLike, recipe: str | None = None,
+                        legacy: bool = False) -> dict[str, Any]:
     """What identifies a pretrained checkpoint in an experiment's spec: its task, preset,
-    update count and the fingerprint of the data it was trained on (not its folder, so a
-    clone whose cache lives elsewhere reuses the committed experiments), the spans of its
-    token edges, and a digest of its whole model config (its token edges are fitted to the
-    data's labels, so relabelled data give another model from the same episodes)."""
+    update count, its data, the spans of its token edges, and a digest of how it was made (not
+    its folder, so a clone whose cache lives elsewhere reuses the committed experiments).
+
+    The data are named by their recipe (`recipe`, else the one in the checkpoint's metadata;
+    `experts.collect.data_recipe`) and the model by its config without the token edges plus
+    the pretraining and optimiser settings: both the same on every CPU, while the collected
+    episodes' bits, and with them the edges fitted to their labels, are not. Data without a
+    recipe, or `legacy`, give the bit-level identity records were keyed on before 2026-12-07:
+    the data's fingerprint and a digest of the whole model config (edges included)."""
     import hashlib
 
     from safecdt_jax.pretrain.checkpoint import read_meta
 
+    def digest(value: Any) -> str:
+        text = json.dumps(value, sort_keys=True).encode()
+        return hashlib.blake2b(text, digest_size=8).hexdigest()
+
     meta = read_meta(ckpt)
-    model = json.dumps(meta["model"], sort_keys=True).encode()
-    out = {"task": meta["task"], "preset": meta["preset"], "step": int(meta["step"]),
-           "data": meta["dataset"]["fingerprint"],
-           "model": hashlib.blake2b(model, digest_size=8).hexdigest()}
+    recipe = None if legacy else recipe or meta["dataset"].get("recipe")
+    out = {"task": meta["task"], "preset": meta["preset"], "step": int(meta["step"])}
+    if recipe is None:
+        out |= {"data": meta["dataset"]["fingerprint"], "model": digest(meta["model"])}
+    else:
+        model = {k: v for k, v in meta["model"].items() if k not in _FITTED}
+        pretrain = {k: v for k, v in meta.get("pretrain", {}).items() if k not in _BOOKKEEPING}
+        out |= {"data": recipe, "model": digest([model, pretrain, meta.get("optim")])}
     pretrain = meta.get("pretrain", {})
     spans = {k: pretrain[k] for k in ("return_span", "cost_span") if pretrain.get(k)}
     return out | spans
 
 
-def seeded_identity(ckpts: list[Path]) -> dict[str, Any]:
+# Model fields fitted to the data's labels, and pretraining fields that do not change the model.
+_FITTED = ("return_edges", "cost_edges")
+_BOOKKEEPING = ("seed", "checkpoint_every", "max_to_keep")
+
+
+def seeded_identity(ckpts: list[Path], recipe: str | None = None,
+                    legacy: bool = False) -> dict[str, Any]:
     """`checkpoint_identity` of the first checkpoint, plus under `seeds` every checkpoint's
     identity with its pretraining seed (what a multi-checkpoint experiment's spec records)."""
     from safecdt_jax.pretrain.checkpoint import read_meta
 
-    ids = [checkpoint_identity(c) | {"seed": read_meta(c)["pretrain"]["seed"]} for c in ckpts]
-    return checkpoint_identity(ckpts[0]) | {"seeds": ids}
+    ids = [checkpoint_identity(c, recipe, legacy) | {"seed": read_meta(c)["pretrain"]["seed"]}
+           for c in ckpts]
+    return checkpoint_identity(ckpts[0], recipe, legacy) | {"seeds": ids}
 
 
 def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) -> dict[str, Any]:
@@ -175,7 +200,8 @@ def baselines_folder(pair: str, preset: str) -> Path:
 
 
 def _matching_baselines(folder: Path, spec: Mapping[str, Any]) -> dict[str, Any] | None:
-    """The `baselines.json` in `folder` if it was made with the spec's settings and data."""
+    """The `baselines.json` in `folder` if it was made with the spec's settings and data (its
+    recipe, or its fingerprint for data without one)."""
     path = folder / "baselines.json"
     if not path.is_file():
         return None
@@ -186,7 +212,8 @@ def _matching_baselines(folder: Path, spec: Mapping[str, Any]) -> dict[str, Any]
             and saved.get("preset") == spec["preset"]
             and saved.get("stop_over_budget") is True
             and [m["algo"] for m in saved.get("methods", [])] == spec["algos"]
-            and saved.get("data", {}).get("fingerprint") == spec["data"])
+            and spec["data"] in (saved.get("data", {}).get("recipe"),
+                                 saved.get("data", {}).get("fingerprint")))
     return saved if same else None
 
 
@@ -233,10 +260,12 @@ def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path | list[Path], fold
                    ckpt_id: Mapping[str, Any] | None = None) -> dict[str, Any] | None:
     """The record of experiment `e` (`{"spec", "seconds", "finished", "results"}`), loaded from
     `folder/KEY.json` when finished with the same spec, else run and written there atomically.
-    None for baselines that are neither cached nor to be trained (`plan.train_baselines`).
-    `ckpt`: the pair's checkpoint, or its pretraining seeds' checkpoints (the first is the one
-    of single-checkpoint experiments); `ckpt_id`: `seeded_identity(ckpt)`, when the caller has
-    it."""
+    A record keyed on the bits of these very checkpoints' data (`checkpoint_identity(...,
+    legacy=True)`) is reused too, its spec rewritten to the current one. None for baselines
+    that are neither cached nor to be trained (`plan.train_baselines`). `ckpt`: the pair's
+    checkpoint, or its pretraining seeds' checkpoints (the first is the one of
+    single-checkpoint experiments); `ckpt_id`: `seeded_identity(ckpt, ...)`, when the caller
+    has it."""
     from safecdt_jax.io import write_text_atomic
 
     ckpts = [Path(ckpt)] if isinstance(ckpt, str | os.PathLike) else [Path(c) for c in ckpt]
@@ -246,6 +275,14 @@ def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path | list[Path], fold
     spec = experiment_spec(e, plan, ckpt_id or seeded_identity(ckpts))
     path = folder / f"{e.key}.json"
     record = load_record(path, spec)
+    if record is None:
+        record = load_record(path, experiment_spec(e, plan, seeded_identity(ckpts, legacy=True)))
+        if record is not None and record["spec"] != spec:
+            record = dict(record, spec=spec)
+            if is_writer():
+                write_text_atomic(path, json.dumps(record))
+            log(f"{e.key}: finished earlier on the same data's bits; its spec now names the "
+                f"data's recipe")
     if record is not None:
         log(f"{e.key}: finished earlier ({record['seconds']:.0f} s), reused")
         return record
@@ -260,13 +297,28 @@ def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path | list[Path], fold
             log(f"{e.key}: no cached baselines with these settings; skipped (train them with "
                 f"the full `paper` or `safecdt-jax baselines`)")
             return None
+    from safecdt_jax.pretrain.checkpoint import read_meta
+
     record = {"spec": spec, "seconds": time.perf_counter() - start,
-              "finished": time.strftime("%Y-%m-%d %H:%M:%S"), "results": results}
+              "finished": time.strftime("%Y-%m-%d %H:%M:%S"),
+              "data_fingerprint": read_meta(ckpts[0])["dataset"]["fingerprint"],
+              "results": results}
     if is_writer():  # among cooperating processes, process 0 writes
         folder.mkdir(parents=True, exist_ok=True)
         write_text_atomic(path, json.dumps(record))
     log(f"{e.key}: done in {record['seconds']:.0f} s")
     return record
+
+
+def _recipe(pair: str, plan: PaperPlan, checkpoints: Mapping[str, Any] | None) -> str | None:
+    """The recipe of the source data the pair's prepared checkpoints trained on (None where the
+    caller gave the checkpoints: their metadata says)."""
+    from safecdt_jax.data.collect import file_attrs
+    from safecdt_jax.experts.collect import data_recipe
+
+    if checkpoints is not None and pair in checkpoints:
+        return None
+    return data_recipe(file_attrs(source_data(pair, plan)) or {})
 
 
 def _describe(e: Experiment) -> str:
@@ -301,7 +353,7 @@ def run_paper(plan: PaperPlan, out: str | os.PathLike, *, progress: bool = True,
             ckpt = process_zero_first(f"paper:prepare:{pair}",
                                       lambda pair=pair: prepare_checkpoints(pair, plan, progress))
         prepare[pair] = time.perf_counter() - t0
-        ckpt_id = seeded_identity(ckpt)
+        ckpt_id = seeded_identity(ckpt, _recipe(pair, plan, checkpoints))
         for e in (x for x in experiments(plan) if x.pair == pair):
             record = run_experiment(e, plan, ckpt, folder, progress, log, ckpt_id)
             if record is not None:

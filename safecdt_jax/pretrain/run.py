@@ -94,8 +94,11 @@ def dataset_record(path: str | os.PathLike, data: Dataset) -> dict[str, Any]:
     `reference_return` is the 95th percentile of the episode returns (R_ref of docs/METHOD.md, the
     deployment's return unit); `cost_median` the median episode cost. `fingerprint` is a
     BLAKE2b digest of the episode arrays, so a re-collected file is told apart from the old one
-    whatever its path or compression.
+    whatever its path or compression; `recipe` the digest of what the collector made the data
+    from (`experts.collect.data_recipe`; None for data it did not collect), the same on every CPU.
     """
+    from safecdt_jax.experts.collect import data_recipe
+
     returns, costs = episode_returns(data), episode_costs(data)
     digest = hashlib.blake2b(digest_size=16)
     for name in ("lengths", "observations", "actions", "rewards", "costs"):
@@ -103,6 +106,7 @@ def dataset_record(path: str | os.PathLike, data: Dataset) -> dict[str, Any]:
     return {
         "path": str(Path(path).absolute()),
         "fingerprint": digest.hexdigest(),
+        "recipe": data_recipe(data.attrs),
         "n_episodes": int(data.n_episodes),
         "n_transitions": int(np.sum(data.lengths)),
         "horizon": int(data.horizon),
