@@ -291,6 +291,7 @@ def test_identity_names_the_data_recipe_and_upgrades_records_keyed_on_the_same_b
     record = run_experiment(e, plan, [here], folder, progress=False, log=logs.append)
     current = json.loads(json.dumps(experiment_spec(e, plan, seeded_identity([here]))))
     assert record["results"] == {"made": "here"} and record["spec"] == current
+    assert record["data_fingerprint"] == checkpoint_identity(here, legacy=True)["data"]
     assert json.loads((folder / f"{e.key}.json").read_text())["spec"] == current
     assert any("now names the data's recipe" in line for line in logs)
     assert load_record(folder / f"{e.key}.json", current) is not None

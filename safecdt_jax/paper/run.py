@@ -276,9 +276,10 @@ def run_experiment(e: Experiment, plan: PaperPlan, ckpt: Path | list[Path], fold
     path = folder / f"{e.key}.json"
     record = load_record(path, spec)
     if record is None:
-        record = load_record(path, experiment_spec(e, plan, seeded_identity(ckpts, legacy=True)))
+        legacy = seeded_identity(ckpts, legacy=True)
+        record = load_record(path, experiment_spec(e, plan, legacy))
         if record is not None and record["spec"] != spec:
-            record = dict(record, spec=spec)
+            record = dict(record, spec=spec, data_fingerprint=legacy["data"])
             if is_writer():
                 write_text_atomic(path, json.dumps(record))
             log(f"{e.key}: finished earlier on the same data's bits; its spec now names the "
