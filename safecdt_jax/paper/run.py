@@ -8,9 +8,9 @@ continues where it stopped and a changed plan reruns only what it changes. A che
 collected expert data is identified by the data's recipe, not its bits, so a suite continues on
 another kind of CPU, where the same recipe collects episodes that differ in float rounding
 (`checkpoint_identity`); a record keyed the older way on the bits is upgraded where the bits
-here are the same. Under N cooperating
-processes (`safecdt_jax.distributed`, on a shared disk) the deployment sweeps shard their seeds
-over every process; process 0 alone prepares checkpoints, trains baselines and writes files.
+here are the same. Under N cooperating processes (`safecdt_jax.distributed`, on a shared disk)
+the deployment sweeps shard their seeds over every process; process 0 alone prepares
+checkpoints, trains baselines and writes files.
 """
 
 from __future__ import annotations
