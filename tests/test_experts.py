@@ -11,11 +11,15 @@ import pytest
 
 from safecdt_jax.experts import CostSchedule, ExpertConfig, expert_preset, make_train
 from safecdt_jax.experts.collect import (
+    CAREFUL_FLOOR,
     CarefulFloor,
     DsrlSize,
     careful_floor,
+    data_recipe,
     filter_to_size,
+    floor_for,
     grid_filter,
+    recipe_fields,
 )
 from safecdt_jax.experts.config import NO_LIMIT
 from safecdt_jax.experts.networks import ObsNorm
@@ -232,6 +236,21 @@ def test_careful_floor_swaps_in_the_most_competent_careful_policies():
         careful_floor(rng, kept, costs, pc, pr, 120.0, CarefulFloor(5.0, 0.1)), kept)
     np.testing.assert_array_equal(
         careful_floor(rng, kept, costs, pc, pr, 120.0, CarefulFloor(1.0, 0.5)), kept)
+
+
+def test_a_task_s_own_floor_is_part_of_its_data_recipe():
+    attrs = {"behaviour": "expert", "seed": 0, "task": "CarGoal1", "snapshot_sha256": "ab",
+             "expert_collector_version": 4, "physics_version": 7,
+             "grid_filter": {"max_cost": 120.0, "target": 1671},
+             "careful_floor": {**CAREFUL_FLOOR._asdict(), "swapped_in": 36}}
+    # The default floor is what collector 4 implies: not named, so older recipes hold.
+    assert "careful_floor" not in recipe_fields(attrs)
+    assert recipe_fields(attrs) == recipe_fields({k: v for k, v in attrs.items()
+                                                  if k != "careful_floor"})
+    none = attrs | {"careful_floor": {"max_policy_cost": 5.0, "share": 0.0, "swapped_in": 0}}
+    assert recipe_fields(none)["careful_floor"] == [5.0, 0.0]
+    assert data_recipe(none) != data_recipe(attrs)
+    assert floor_for("CarCircle1").share == 0.0 and floor_for("CarGoal1") == CAREFUL_FLOOR
 
 
 def test_tiny_expert_then_collect_writes_a_dsrl_file(tmp_path):

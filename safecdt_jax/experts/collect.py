@@ -81,6 +81,20 @@ class CarefulFloor(NamedTuple):
 # (physics 6), too few for a clone to learn what a low cost token asks for.
 CAREFUL_FLOOR = CarefulFloor(max_policy_cost=5.0, share=0.10)
 
+# Tasks whose data take another floor than `CAREFUL_FLOOR`. CarCircle1: none. Its careful
+# policies (physics 7) pay MORE in CarCircle2 than its less careful ones, in Safety-Gymnasium as
+# here (the limit-5 expert 150.6 against the limit-20's 145.7 with mean actions), so the
+# swapped-in episodes teach a low cost token a behaviour that is costlier in the target: on
+# 3 checkpoints x 3 seeds the floor raised Safe-CDT's VR in CarCircle2 from 67.8% to 91.3% and
+# naive LoRA's from 53.3% to 84.7% (zero-shot 80.4 / 78.9%; docs/research/cdt-findings.md 27).
+CAREFUL_FLOORS = {"CarCircle1": CarefulFloor(max_policy_cost=5.0, share=0.0)}
+
+
+def floor_for(task: str) -> CarefulFloor:
+    """The careful floor `expert_dataset` applies to `task`'s data (`CAREFUL_FLOORS`, else
+    `CAREFUL_FLOOR`)."""
+    return CAREFUL_FLOORS.get(task, CAREFUL_FLOOR)
+
 # DSRL's source data sets (file names `{task}-{max cost}-{trajectories}.hdf5`).
 DSRL_SIZES = {
     "CarGoal1": DsrlSize(1671, 120.0),
@@ -261,8 +275,8 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
                    seed: int | None = None, actions: str = DEFAULT_ACTIONS) -> Dataset:
     """The source data of `task` from its expert snapshots (default: the committed file),
     grid-filtered to DSRL's size (default `DSRL_SIZES[task]`), then careful policies' episodes
-    swapped in up to `CAREFUL_FLOOR` (`careful_floor`), actions recorded as `actions` says
-    (`ACTION_RECORDINGS`).
+    swapped in up to the task's floor (`floor_for`, `careful_floor`), actions recorded as
+    `actions` says (`ACTION_RECORDINGS`).
 
     `per_snapshot` episodes per snapshot (default: enough for twice the target count). attrs
     add the filter's settings ('grid_filter': cbins, rbins, per-bin cap, max cost, episodes
@@ -282,15 +296,16 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
     costs, returns = episode_costs(raw), episode_returns(raw)
     rng = np.random.default_rng(np.asarray(jax.random.bits(k_filter, (2,)), np.uint64))
     gridded, per_bin = filter_to_size(rng, costs, returns, size)
+    floor = floor_for(task)
     kept = careful_floor(rng, gridded, costs, raw.episode_info["policy_cost"],
-                         raw.episode_info["policy_return"], size.max_cost)
+                         raw.episode_info["policy_return"], size.max_cost, floor)
     data = select_episodes(raw, kept)
     attrs = dict(data.attrs) | {
         "episodes": int(kept.size),
         "grid_filter": {"cost_bins": 60, "reward_bins": 50, "per_bin": per_bin,
                         "max_cost": size.max_cost, "target": size.episodes,
                         "episodes_before": int(costs.size), "episodes_after": int(kept.size)},
-        "careful_floor": {**CAREFUL_FLOOR._asdict(),
+        "careful_floor": {**floor._asdict(),
                           "swapped_in": int(np.setdiff1d(kept, gridded).size)}}
     if seed is not None:
         attrs["seed"] = int(seed)
@@ -300,17 +315,32 @@ def expert_dataset(key: jax.Array, task: str, per_snapshot: int | None = None,
 def recipe_fields(attrs: Mapping[str, Any]) -> dict[str, Any] | None:
     """The inputs an expert data set was collected from, as plain values: task, the snapshot
     file's SHA-256, collector and physics versions, seed, the filter's max cost and target count,
-    and the action recording (files without it are 'executed'). None for data that
+    and the action recording (files without it are 'executed'), and the careful floor where it
+    is not `CAREFUL_FLOOR`. None for data that
     `expert_dataset` did not collect with a seed (raw rollouts, other behaviours)."""
     grid = attrs.get("grid_filter")
     if attrs.get("behaviour") != "expert" or "seed" not in attrs or grid is None:
         return None
     grid = json.loads(grid) if isinstance(grid, str) else grid
-    return {"task": str(attrs["task"]), "snapshot_sha256": str(attrs["snapshot_sha256"]),
-            "collector": int(attrs["expert_collector_version"]),
-            "physics": int(attrs["physics_version"]), "seed": int(attrs["seed"]),
-            "max_cost": float(grid["max_cost"]), "target": int(grid["target"]),
-            "actions": str(attrs.get("actions", "executed"))}
+    fields = {"task": str(attrs["task"]), "snapshot_sha256": str(attrs["snapshot_sha256"]),
+              "collector": int(attrs["expert_collector_version"]),
+              "physics": int(attrs["physics_version"]), "seed": int(attrs["seed"]),
+              "max_cost": float(grid["max_cost"]), "target": int(grid["target"]),
+              "actions": str(attrs.get("actions", "executed"))}
+    floor = attrs.get("careful_floor")
+    floor = json.loads(floor) if isinstance(floor, str) else floor
+    if floor is not None:
+        floor = CarefulFloor(float(floor["max_policy_cost"]), float(floor["share"]))
+    return fields | _floor_field(floor)
+
+
+def _floor_field(floor: CarefulFloor | None) -> dict[str, Any]:
+    """The recipe's floor entry: none for `CAREFUL_FLOOR`, which collector version 4 implies
+    (so the recipes, and the records keyed on them, made before floors became per task still
+    hold), else `careful_floor: [max policy cost, share]`."""
+    if floor is None or floor == CAREFUL_FLOOR:
+        return {}
+    return {"careful_floor": [floor.max_policy_cost, floor.share]}
 
 
 def data_recipe(attrs: Mapping[str, Any]) -> str | None:
@@ -330,14 +360,14 @@ def is_current(path: str | os.PathLike, task: str, size: DsrlSize, seed: int,
                actions: str = DEFAULT_ACTIONS) -> bool:
     """Whether `path` holds expert data of `task` from the committed snapshots (same SHA-256),
     this collector and physics version, `seed`, the filter's target size and the action
-    recording (`recipe_fields`)."""
+    recording and the task's careful floor (`recipe_fields`)."""
     from safecdt_jax.data.collect import file_attrs
 
     attrs = file_attrs(path)
     want = {"task": task, "snapshot_sha256": snapshot_sha256(snapshot_path(task)),
             "collector": EXPERT_COLLECTOR_VERSION, "physics": envs.physics_version(task),
             "seed": seed, "max_cost": float(size.max_cost), "target": size.episodes,
-            "actions": actions}
+            "actions": actions} | _floor_field(floor_for(task))
     return attrs is not None and recipe_fields(attrs) == want
 
 
@@ -368,6 +398,7 @@ def ensure_source_data(task: str, episodes: int | None = None, seed: int = 0,
 __all__ = [
     "ACTION_RECORDINGS",
     "CAREFUL_FLOOR",
+    "CAREFUL_FLOORS",
     "DSRL_SIZES",
     "EXPERT_COLLECTOR_VERSION",
     "SNAPSHOT_DIR",
@@ -378,6 +409,7 @@ __all__ = [
     "ensure_source_data",
     "expert_dataset",
     "filter_to_size",
+    "floor_for",
     "grid_filter",
     "is_current",
     "planned_episodes",
