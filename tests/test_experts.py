@@ -418,6 +418,29 @@ def test_warm_started_experts_append_to_a_snapshot_file(tmp_path):
         merge_snapshots(tmp_path / "m.npz", snaps, wide)
 
 
+def test_experts_of_an_older_physics_are_retargeted_to_the_current_one(tmp_path):
+    from safecdt_jax import envs
+    from safecdt_jax.experts.collect import rollout_snapshots, snapshot_path
+    from safecdt_jax.experts.export import load_snapshots, retarget_physics
+
+    with np.load(snapshot_path("PointCircle1")) as z:
+        meta = json.loads(str(z["meta"]))
+        arrays = {k: z[k] for k in z.files if k != "meta"}
+    now = envs.physics_version("PointCircle1")
+    old = tmp_path / "old.npz"
+    np.savez_compressed(old, meta=np.asarray(json.dumps(meta | {"physics_version": now - 1})),
+                        **arrays)
+    with pytest.raises(ValueError, match=f"trained under physics version {now - 1}"):
+        rollout_snapshots(jax.random.PRNGKey(0), old, 1, horizon=5)
+    out = retarget_physics(tmp_path / "new.npz", old)
+    snaps, new_meta = load_snapshots(out)
+    assert new_meta["physics_version"] == now and new_meta["trained_physics_version"] == now - 1
+    np.testing.assert_array_equal(snaps["actor"]["log_std"],
+                                  load_snapshots(snapshot_path("PointCircle1"))[0]["actor"]["log_std"])
+    # Retargeting again keeps the version the experts were trained under.
+    assert load_snapshots(retarget_physics(out, out))[1]["trained_physics_version"] == now - 1
+
+
 def test_rollouts_carry_each_snapshots_mean_over_all_its_episodes():
     from safecdt_jax.data.windows import episode_costs, episode_returns
     from safecdt_jax.experts.collect import rollout_snapshots, snapshot_path

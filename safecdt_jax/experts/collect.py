@@ -82,11 +82,11 @@ class CarefulFloor(NamedTuple):
 CAREFUL_FLOOR = CarefulFloor(max_policy_cost=5.0, share=0.10)
 
 # Tasks whose data take another floor than `CAREFUL_FLOOR`. CarCircle1: none. Its careful
-# policies (physics 7) pay MORE in CarCircle2 than its less careful ones, in Safety-Gymnasium as
-# here (the limit-5 expert 150.6 against the limit-20's 145.7 with mean actions), so the
-# swapped-in episodes teach a low cost token a behaviour that is costlier in the target: on
-# 3 checkpoints x 3 seeds the floor raised Safe-CDT's VR in CarCircle2 from 67.8% to 91.3% and
-# naive LoRA's from 53.3% to 84.7% (zero-shot 80.4 / 78.9%; docs/research/cdt-findings.md 27).
+# policies are not careful in CarCircle2 (physics 7's limit-5 expert pays 150.6 there with mean
+# actions, its limit-20 one 145.7), and the floor's episodes made the CC1-CC2 deployments run
+# over the budget more often with either expert file: physics 7's (Safe-CDT VR 67.8 -> 91.3%,
+# 3 checkpoints x 3 seeds) and the physics-6 one used now (zero-shot 73 -> 92% on physics 6;
+# docs/research/cdt-findings.md sections 25 and 27).
 CAREFUL_FLOORS = {"CarCircle1": CarefulFloor(max_policy_cost=5.0, share=0.0)}
 
 

@@ -154,6 +154,23 @@ def select_runs(out: str | os.PathLike, path: str | os.PathLike, runs: Sequence[
     return _write_snapshot_file(out, picked, meta | {"snapshots": entries})
 
 
+def retarget_physics(out: str | os.PathLike, path: str | os.PathLike) -> Path:
+    """Writes the snapshots of `path` into `out` (atomically; `out` may be `path`) labelled with
+    the task's current physics version, the version they were trained under kept as
+    `trained_physics_version`: how experts trained on an older physics become behaviour
+    policies for data collected on the current one (the collector refuses a file labelled
+    with another version). The policies' weights are unchanged."""
+    with np.load(path) as z:
+        meta = json.loads(str(z["meta"]))
+        arrays = {k: z[k] for k in z.files if k != "meta"}
+    meta["trained_physics_version"] = meta.get("trained_physics_version",
+                                               meta["physics_version"])
+    meta["physics_version"] = envs.physics_version(meta["task"])
+    with atomic_path(out, suffix=".npz") as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, meta=np.asarray(json.dumps(meta)), **arrays)
+    return Path(out)
+
+
 def load_snapshots(path: str | os.PathLike) -> tuple[dict[str, Any], dict]:
     """(snapshots, meta) from `write_snapshots`' file: snapshots {'actor', 'norm': ObsNorm} with
     leaves [n_snapshots, ...]. ValueError naming the file if it is not such a file."""
@@ -181,5 +198,5 @@ def _actor_template(cfg: ExpertConfig, obs_dim: int):
     return init_networks(jax.random.PRNGKey(0), obs_dim, 2, cfg.hidden, cfg.init_std)["actor"]
 
 
-__all__ = ["ROLLOUT_FIELDS", "load_snapshots", "merge_snapshots", "plot_curves", "select_rounds",
-           "select_runs", "write_curves", "write_snapshots"]
+__all__ = ["ROLLOUT_FIELDS", "load_snapshots", "merge_snapshots", "plot_curves",
+           "retarget_physics", "select_rounds", "select_runs", "write_curves", "write_snapshots"]
