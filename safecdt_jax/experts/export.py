@@ -104,9 +104,22 @@ ROLLOUT_FIELDS = ("task", "hidden", "min_std", "obs_var_floor", "obs_clip", "epi
 def _write_snapshot_file(path, snaps: dict, meta: dict) -> Path:
     leaves = jax.tree_util.tree_flatten_with_path(snaps)[0]
     arrays = {jax.tree_util.keystr(p): np.asarray(v, np.float32) for p, v in leaves}
+    return _write_raw(path, meta, arrays)
+
+
+def _write_raw(path, meta: dict, arrays: dict[str, np.ndarray]) -> Path:
     with atomic_path(path, suffix=".npz") as tmp, open(tmp, "wb") as f:
         np.savez_compressed(f, meta=np.asarray(json.dumps(meta)), **arrays)
     return Path(path)
+
+
+def _read_raw(path) -> tuple[dict, dict[str, np.ndarray]]:
+    """(meta, arrays by leaf path) of a snapshot file; ValueError naming a file that is not one."""
+    try:
+        with np.load(path) as z:
+            return json.loads(str(z["meta"])), {k: z[k] for k in z.files if k != "meta"}
+    except (OSError, KeyError, ValueError) as e:
+        raise ValueError(f"{os.fspath(path)} is not an expert snapshot file: {e}") from None
 
 
 def merge_snapshots(out: str | os.PathLike, *files: str | os.PathLike) -> Path:
@@ -160,26 +173,17 @@ def retarget_physics(out: str | os.PathLike, path: str | os.PathLike) -> Path:
     `trained_physics_version`: how experts trained on an older physics become behaviour
     policies for data collected on the current one (the collector refuses a file labelled
     with another version). The policies' weights are unchanged."""
-    with np.load(path) as z:
-        meta = json.loads(str(z["meta"]))
-        arrays = {k: z[k] for k in z.files if k != "meta"}
+    meta, arrays = _read_raw(path)
     meta["trained_physics_version"] = meta.get("trained_physics_version",
                                                meta["physics_version"])
     meta["physics_version"] = envs.physics_version(meta["task"])
-    with atomic_path(out, suffix=".npz") as tmp, open(tmp, "wb") as f:
-        np.savez_compressed(f, meta=np.asarray(json.dumps(meta)), **arrays)
-    return Path(out)
+    return _write_raw(out, meta, arrays)
 
 
 def load_snapshots(path: str | os.PathLike) -> tuple[dict[str, Any], dict]:
     """(snapshots, meta) from `write_snapshots`' file: snapshots {'actor', 'norm': ObsNorm} with
     leaves [n_snapshots, ...]. ValueError naming the file if it is not such a file."""
-    try:
-        with np.load(path) as z:
-            meta = json.loads(str(z["meta"]))
-            arrays = {k: z[k] for k in z.files if k != "meta"}
-    except (OSError, KeyError, ValueError) as e:
-        raise ValueError(f"{os.fspath(path)} is not an expert snapshot file: {e}") from None
+    meta, arrays = _read_raw(path)
     if meta.get("format") != SNAPSHOT_FORMAT:
         raise ValueError(f"{os.fspath(path)}: snapshot format {meta.get('format')!r}, this "
                          f"code reads {SNAPSHOT_FORMAT}")
