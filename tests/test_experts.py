@@ -421,15 +421,11 @@ def test_warm_started_experts_append_to_a_snapshot_file(tmp_path):
 def test_experts_of_an_older_physics_are_retargeted_to_the_current_one(tmp_path):
     from safecdt_jax import envs
     from safecdt_jax.experts.collect import rollout_snapshots, snapshot_path
-    from safecdt_jax.experts.export import load_snapshots, retarget_physics
+    from safecdt_jax.experts.export import _read_raw, _write_raw, load_snapshots, retarget_physics
 
-    with np.load(snapshot_path("PointCircle1")) as z:
-        meta = json.loads(str(z["meta"]))
-        arrays = {k: z[k] for k in z.files if k != "meta"}
+    meta, arrays = _read_raw(snapshot_path("PointCircle1"))
     now = envs.physics_version("PointCircle1")
-    old = tmp_path / "old.npz"
-    np.savez_compressed(old, meta=np.asarray(json.dumps(meta | {"physics_version": now - 1})),
-                        **arrays)
+    old = _write_raw(tmp_path / "old.npz", meta | {"physics_version": now - 1}, arrays)
     with pytest.raises(ValueError, match=f"trained under physics version {now - 1}"):
         rollout_snapshots(jax.random.PRNGKey(0), old, 1, horizon=5)
     out = retarget_physics(tmp_path / "new.npz", old)

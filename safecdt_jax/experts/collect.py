@@ -316,8 +316,8 @@ def recipe_fields(attrs: Mapping[str, Any]) -> dict[str, Any] | None:
     """The inputs an expert data set was collected from, as plain values: task, the snapshot
     file's SHA-256, collector and physics versions, seed, the filter's max cost and target count,
     and the action recording (files without it are 'executed'), and the careful floor where it
-    is not `CAREFUL_FLOOR`. None for data that
-    `expert_dataset` did not collect with a seed (raw rollouts, other behaviours)."""
+    is not `CAREFUL_FLOOR`. None for data that `expert_dataset` did not collect with a seed (raw
+    rollouts, other behaviours)."""
     grid = attrs.get("grid_filter")
     if attrs.get("behaviour") != "expert" or "seed" not in attrs or grid is None:
         return None
