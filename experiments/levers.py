@@ -8,7 +8,9 @@ For each pair and pretraining seed: a `cpu`-preset CDT pretrained on the source 
 data (`--edges data`: token ramp edges at the data's quantiles alone, as before 2026-12-06), then,
 in the target task at B = 30 with `--seeds` deployment seeds x 50 episodes:
 - zero-shot at the fixed cost ratios 0.2 / 0.4 / 0.6 / 0.8 / 1.0 (the paper's Table 5), one sweep;
-- Safe-CDT and naive LoRA under each LoRA label rule (`DeployConfig.lora_labels`).
+- Safe-CDT and naive LoRA under each LoRA label rule (`DeployConfig.lora_labels`), optionally
+  with `+`-separated changes: the replay weights' excess rule (`DeployConfig.replay_excess`) or
+  any FIELD=VALUE of DeployConfig (`stage+projected+weight_floor=0.01`).
 With `--edges span` the checkpoints are the cache's, the ones `safecdt-jax paper` deploys.
 Per (pair, rule, variant) the table gives the mean over checkpoints x seeds of VR, cost, cost
 over episodes 41-50 and the drift (episodes 41-50 minus 1-10), each with its spread across
@@ -54,17 +56,28 @@ def checkpoint(pair: str, seed: int, edges: str, work: Path) -> Path:
     return out
 
 
+def deploy_config(rule: str):
+    """The DeployConfig of a `--rules` entry: a LoRA label rule, then `+`-separated changes, each
+    a replay-excess rule or a FIELD=VALUE (`stage+projected+weight_floor=0.01`:
+    `lora_labels="stage"`, `replay_excess="projected"`, `weight_floor=0.01`)."""
+    from safecdt_jax.deploy.config import DeployConfig
+    from safecdt_jax.validate import field_overrides
+
+    labels, *changes = rule.split("+")
+    changes = [c if "=" in c else f"replay_excess={c}" for c in changes]
+    return DeployConfig(lora_labels=labels, **field_overrides(changes, DeployConfig))
+
+
 def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule: str,
           seeds: int, work: Path) -> dict:
     """One deployment sweep's results record, from `work` or run and written there."""
-    from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.deploy.job import run_deployment, write_results
     from safecdt_jax.pairs import parse_pair
 
     out = work / "res" / f"{pair}_{edges}_s{seed}_{name}"
     if not (out / "results.json").exists():
         res = run_deployment(checkpoint(pair, seed, edges, work), parse_pair(pair)[1], variants,
-                             [BUDGET], seeds, seed=seed, cfg=DeployConfig(lora_labels=rule),
+                             [BUDGET], seeds, seed=seed, cfg=deploy_config(rule),
                              progress=False)
         write_results(out, res, f"levers {pair} {edges} seed {seed} {name}")
     return json.loads((out / "results.json").read_text())

@@ -73,7 +73,8 @@ def test_config_defaults_match_method_and_are_static():
     "changes",
     [dict(episodes=0), dict(window=2.5), dict(z=0.0), dict(tighten_below=0.95),
      dict(cr0=1.2), dict(rr_min=0.0), dict(momentum_factor=0.5), dict(lambda0=30.0),
-     dict(weight_floor=0.0), dict(lambda_decay=1.5), dict(lambda_warmup=-1)],
+     dict(weight_floor=0.0), dict(lambda_decay=1.5), dict(lambda_warmup=-1),
+     dict(replay_excess="total")],
 )
 def test_config_rejects_invalid_values(changes):
     with pytest.raises(ValueError, match="DeployConfig"):
@@ -286,6 +287,22 @@ def test_replay_weights_hand_computed():
     w = replay_weights(ctg, jnp.ones(5, bool), 2.0, B, CFG)
     np.testing.assert_allclose(w, raw / raw.mean(), rtol=1e-6)
     assert float(w.mean()) == pytest.approx(1.0)
+
+
+def test_projected_cost_to_go_extends_a_cut_episode_at_its_rate():
+    from safecdt_jax.deploy.reweight import projected_cost_to_go
+
+    # windows of a full episode (length 1000) keep their realised cost-to-go; every window of
+    # an episode cut at step 300 with 31 cost gains the 700 missing steps at 31 / 300 per step
+    got = projected_cost_to_go(jnp.array([12.0, 31.0, 1.0]), jnp.array([1000, 300, 300]),
+                               jnp.array([40.0, 31.0, 31.0]), 1000)
+    np.testing.assert_allclose(got, [12.0, 31.0 + 700 * 31 / 300, 1.0 + 700 * 31 / 300],
+                               rtol=1e-6)
+    # at lambda 2 the cut episode's first window is floored; the realised reading cannot be
+    w = replay_weights(got, jnp.ones(3, bool), 2.0, B, CFG)
+    assert float(w[1] / w[0]) == pytest.approx(0.1, rel=1e-6)
+    realised = replay_weights(jnp.array([12.0, 31.0, 1.0]), jnp.ones(3, bool), 2.0, B, CFG)
+    assert float(realised[1] / realised[0]) == pytest.approx(math.exp(-2.0 / B), rel=1e-6)
 
 
 def test_replay_weights_floor_mask_and_off():

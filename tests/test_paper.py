@@ -73,6 +73,8 @@ def test_spec_records_how_lora_ran_only_where_it_changes_bits():
     assert spec["deploy_config"]["lora_lr"] == DeployConfig().lora_lr
     assert spec["deploy_config"]["cr_step"] == DeployConfig().cr_step
     assert "deploy_config" not in experiment_spec(ctg, stage, ckpt)
+    # a field added later stays out at the value that reproduces the records made before it
+    assert "replay_excess" not in spec["deploy_config"]
     assert experiment_spec(ctg, stage, ckpt) == experiment_spec(ctg, hindsight, ckpt)
     with pytest.raises(ValueError, match=r"PaperPlan\.lora_labels"):
         PaperPlan(lora_labels="luck")

@@ -20,6 +20,9 @@ import jax.numpy as jnp
 from safecdt_jax import validate as check
 from safecdt_jax.deploy.labels import LABEL_RULES
 
+# What the replay weights' excess reads (`DeployConfig.replay_excess`).
+REPLAY_EXCESS: tuple[str, ...] = ("realised", "projected")
+
 
 @dataclass(frozen=True)
 class DeployConfig:
@@ -63,6 +66,13 @@ class DeployConfig:
         lambda_decay: lambda <- lambda_decay * lambda when v <= v* (0.95).
         lambda0: initial lambda (1.0); variants without reweighting hold lambda = 0.
         weight_floor: lower clip of the unnormalised replay weight exp(-lambda e / B) (0.1).
+        replay_excess: which cost-to-go C the replay weights' excess e = max(0, C - B) reads
+            (`REPLAY_EXCESS`). `"realised"` (default, the paper's rule): the
+            window's realised cost-to-go; under `stop_over_budget` a violating episode stops
+            at B + 1, so e <= 1 and a violating window keeps at least exp(-lambda_max / B) of
+            its weight. `"projected"`: a cut episode's cost-to-go is extended over the steps
+            it did not run at the rate it ran (`deploy.reweight.projected_cost_to_go`), so the
+            weights see how far the episode overran, as they would without the runtime budget.
         lora_steps: Adam steps on the adapters after every episode (10).
         lora_batch: replay sequences per step (32), each of the model's context length K.
         lora_lr: Adam learning rate of the adapters (1e-4).
@@ -130,6 +140,7 @@ class DeployConfig:
     lambda_decay: float = 0.95
     lambda0: float = 1.0
     weight_floor: float = 0.1
+    replay_excess: str = "realised"
     lora_steps: int = 10
     lora_batch: int = 32
     lora_lr: float = 1e-4
@@ -151,6 +162,9 @@ class DeployConfig:
         if self.lora_labels not in LABEL_RULES:
             raise ValueError(f"DeployConfig.lora_labels must be one of {', '.join(LABEL_RULES)}, "
                              f"got {self.lora_labels!r}")
+        if self.replay_excess not in REPLAY_EXCESS:
+            raise ValueError(f"DeployConfig.replay_excess must be one of "
+                             f"{', '.join(REPLAY_EXCESS)}, got {self.replay_excess!r}")
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")
         if not 1 <= self.momentum_factor <= self.momentum_max:

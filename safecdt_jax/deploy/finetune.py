@@ -19,7 +19,7 @@ import optax
 from safecdt_jax.data.buffer import EpisodeBuffer, buffer_size
 from safecdt_jax.data.windows import Windows, sample_windows
 from safecdt_jax.deploy.config import DeployConfig, Variant
-from safecdt_jax.deploy.reweight import replay_weights
+from safecdt_jax.deploy.reweight import projected_cost_to_go, replay_weights
 from safecdt_jax.model.cdt import Params
 from safecdt_jax.model.config import CDTConfig
 from safecdt_jax.model.lora import Lora, apply_cdt_lora
@@ -184,6 +184,11 @@ def lora_finetune(
         ctg_first = win.costs_to_go[:, 0] / model_cfg.cost_scale  # back to raw cost units
         if labels is not None:  # the weights read the realised cost-to-go, not the label
             ctg_first = ctg_first - episodes.cost_offset[win.episode_index]
+        if cfg.replay_excess == "projected":
+            idx = win.episode_index
+            ctg_first = projected_cost_to_go(ctg_first, episodes.lengths[idx],
+                                             episodes.costs[idx].sum(axis=1),
+                                             episodes.costs.shape[1])
         weights = replay_weights(ctg_first, valid, lam, budget, cfg, enabled=variant.reweight)
         drop_key = k_drop if cfg.lora_dropout else None
         loss, grads = gradient(lora, base_params, win, weights, drop_key)

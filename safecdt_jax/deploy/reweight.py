@@ -45,6 +45,21 @@ def lambda_update(
     return jnp.where(enabled, new, 0.0).astype(jnp.float32)
 
 
+def projected_cost_to_go(ctg_first, lengths, totals, horizon: int) -> jax.Array:
+    """[N] cost-to-go (raw cost units) of windows whose episodes may have been cut short,
+    extended over the steps an episode did not run at the cost rate it ran them.
+
+    `ctg_first` [N]: each window's realised cost-to-go at its first step; `lengths` [N] and
+    `totals` [N]: its episode's steps and realised total cost; `horizon`: the steps of a full
+    episode. C = ctg_first + (horizon - length) * total / length, so a full-length episode's
+    windows keep their realised value, and every window of an episode cut at B + 1 after a
+    third of the horizon reads about 2 (B + 1) more: what the episode was on course to pay.
+    """
+    length = jnp.maximum(jnp.asarray(lengths, jnp.float32), 1.0)
+    missing = jnp.maximum(horizon - length, 0.0)
+    return jnp.asarray(ctg_first, jnp.float32) + missing * jnp.asarray(totals, jnp.float32) / length
+
+
 def replay_weights(ctg_first, mask, lam, budget, cfg: DeployConfig, enabled=True) -> jax.Array:
     """Per-sequence loss weights w [N] (float32), paper eq. 5.
 

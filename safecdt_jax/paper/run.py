@@ -159,7 +159,8 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
         if _adapts(e):  # every scheduler and LoRA setting decides an adapting run's result,
             # so a changed default is a new experiment, never a stale record reused
             settings = dataclasses.asdict(DeployConfig())
-            spec["deploy_config"] = {k: v for k, v in settings.items() if k not in _IN_SPEC}
+            spec["deploy_config"] = {k: v for k, v in settings.items() if k not in _IN_SPEC
+                                     and _ADDED_AT.get(k, _UNSET) != v}
         return spec
     return spec | {"algos": list(plan.baseline_algos), "preset": plan.baseline_preset,
                    "stop_over_budget": True, "data": ckpt_id["data"], "env": env_version(target)}
@@ -167,6 +168,11 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
 
 # DeployConfig fields the spec holds elsewhere (from the plan) or that the devices resolve.
 _IN_SPEC = ("episodes", "horizon", "budget", "lora_labels", "lora_in_turn", "stop_over_budget")
+
+# DeployConfig fields added after records were made, at the value that reproduces those records:
+# a field at that value stays out of the spec, so the records it did not change are reused.
+_ADDED_AT = {"replay_excess": "realised"}
+_UNSET = object()
 
 
 def _adapts(e: Experiment) -> bool:
