@@ -1,8 +1,8 @@
 """Do Safe-CDT's levers reach the model? Pretraining seeds x deployment seeds, per pair and rule.
 
     python -m experiments.levers [--pairs CC1-CC2,PC1-PC2,CG1-CG2] [--ckpt-seeds 0,1,2]
-        [--seeds 5] [--rules stage,hindsight,target] [--edges span|data] [--work DIR]
-        [--out PATH]
+        [--seeds 5] [--rules stage,hindsight,target] [--variants safe_cdt,naive_lora]
+        [--no-fixed] [--edges span|data] [--work DIR] [--out PATH]
 
 For each pair and pretraining seed: a `cpu`-preset CDT pretrained on the source task's default
 data (`--edges data`: token ramp edges at the data's quantiles alone, as before 2026-12-06), then,
@@ -89,24 +89,34 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--ckpt-seeds", default="0,1,2")
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--rules", default="stage,hindsight,target")
+    ap.add_argument("--variants", default="safe_cdt,naive_lora",
+                    help="the finetuning variants run under each rule")
+    ap.add_argument("--no-fixed", action="store_true",
+                    help="skip the fixed-ratio sweep (no zero-shot row and no Table 5)")
     ap.add_argument("--edges", default="span", choices=("span", "data"))
     ap.add_argument("--work", type=Path, default=Path("runs/levers"))
     ap.add_argument("--out", type=Path, default=Path("experiments/results/levers.json"))
     args = ap.parse_args(argv)
     fixed = ["zero_shot" if r == 0.6 else f"fixed_ctg({r})" for r in RATIOS]
     table5, cells = [], {}
+    variants = args.variants.split(",")
+    suffix = "_".join(variants)
     for pair in args.pairs.split(","):
         for seed in (int(s) for s in args.ckpt_seeds.split(",")):
-            runs = {r["variant"]: per_seed_metrics(r) for r in sweep(
-                pair, seed, args.edges, "fixed", fixed, "stage", args.seeds, args.work)["runs"]}
-            costs = [float(runs[v]["cost"].mean()) for v in fixed]
-            table5.append({"pair": pair, "ckpt_seed": seed, "costs": costs,
-                           "ratio_02_10": costs[0] / costs[-1]})
+            runs = {}
+            if not args.no_fixed:
+                runs = {r["variant"]: per_seed_metrics(r) for r in sweep(
+                    pair, seed, args.edges, "fixed", fixed, "stage", args.seeds,
+                    args.work)["runs"]}
+                costs = [float(runs[v]["cost"].mean()) for v in fixed]
+                table5.append({"pair": pair, "ckpt_seed": seed, "costs": costs,
+                               "ratio_02_10": costs[0] / costs[-1]})
             for rule in args.rules.split(","):
-                res = sweep(pair, seed, args.edges, rule, ["safe_cdt", "naive_lora"], rule,
-                            args.seeds, args.work)
-                found = {**{r["variant"]: per_seed_metrics(r) for r in res["runs"]},
-                         "zero_shot": runs["zero_shot"]}
+                # the default pair of variants keeps the cache names of earlier runs
+                name = rule if variants == ["safe_cdt", "naive_lora"] else f"{rule}_{suffix}"
+                res = sweep(pair, seed, args.edges, name, variants, rule, args.seeds, args.work)
+                found = {r["variant"]: per_seed_metrics(r) for r in res["runs"]}
+                found |= {"zero_shot": runs["zero_shot"]} if runs else {}
                 for variant, m in found.items():
                     key = (pair, "-" if variant == "zero_shot" else rule, variant)
                     for name, v in m.items():

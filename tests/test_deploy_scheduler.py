@@ -65,6 +65,7 @@ def test_config_defaults_match_method_and_are_static():
     assert (c.lora_steps, c.lora_batch, c.lora_lr) == (10, 32, 1e-4)
     assert (c.clip_ctg, c.budget, c.lora_dropout) == (True, 30.0, False)
     assert c.stop_over_budget is True  # the paper's runtime-budget wrapper
+    assert c.replay_excess == "projected"  # the weights see the overrun the budget cut off
     assert hash(c) == hash(DeployConfig()) and c == DeployConfig()
     assert c.replace(episodes=100).episodes == 100
 

@@ -67,12 +67,13 @@ class DeployConfig:
         lambda0: initial lambda (1.0); variants without reweighting hold lambda = 0.
         weight_floor: lower clip of the unnormalised replay weight exp(-lambda e / B) (0.1).
         replay_excess: which cost-to-go C the replay weights' excess e = max(0, C - B) reads
-            (`REPLAY_EXCESS`). `"realised"` (default, the paper's rule): the
-            window's realised cost-to-go; under `stop_over_budget` a violating episode stops
-            at B + 1, so e <= 1 and a violating window keeps at least exp(-lambda_max / B) of
-            its weight. `"projected"`: a cut episode's cost-to-go is extended over the steps
-            it did not run at the rate it ran (`deploy.reweight.projected_cost_to_go`), so the
-            weights see how far the episode overran, as they would without the runtime budget.
+            (`REPLAY_EXCESS`). `"projected"` (default): a cut episode's cost-to-go is extended
+            over the steps it did not run at the rate it ran
+            (`deploy.reweight.projected_cost_to_go`), so the weights see how far the episode
+            overran, as they would without the runtime budget; full-length episodes read their
+            realised value. `"realised"`: the window's realised cost-to-go, the paper's
+            reading, under which `stop_over_budget` caps e at 1 and a violating window keeps
+            at least exp(-lambda_max / B) of its weight (docs/METHOD.md section 3).
         lora_steps: Adam steps on the adapters after every episode (10).
         lora_batch: replay sequences per step (32), each of the model's context length K.
         lora_lr: Adam learning rate of the adapters (1e-4).
@@ -140,7 +141,7 @@ class DeployConfig:
     lambda_decay: float = 0.95
     lambda0: float = 1.0
     weight_floor: float = 0.1
-    replay_excess: str = "realised"
+    replay_excess: str = "projected"
     lora_steps: int = 10
     lora_batch: int = 32
     lora_lr: float = 1e-4
