@@ -29,7 +29,8 @@ SetFields = Annotated[list[str] | None, typer.Option(
     "--set", metavar="FIELD=VALUE",
     help="Set any DeployConfig field (repeatable), e.g. --set horizon=200 (cut every episode "
          "there), --set stop_over_budget=false (full episodes), --set lora_labels=hindsight "
-         "(the paper's labels), --set lora_in_turn=false; docs/CLI.md lists them.")]
+         "and --set replay_excess=realised (the paper's labels and replay weights), --set "
+         "lora_in_turn=false; docs/CLI.md lists them.")]
 
 
 def _deploy_config(episodes: int, settings: list[str] | None = None) -> DeployConfig:
