@@ -54,7 +54,7 @@ def test_experiments_of_the_default_plan():
     assert exps["PC1-PC2_source_ctg"].task == "source"
 
 
-def test_spec_records_how_lora_ran_only_where_it_changes_bits(monkeypatch):
+def test_spec_records_how_lora_ran_only_where_it_changes_bits():
     """A LoRA experiment's spec names its labels and whether its seeds' LoRA gradients ran in
     turn (as this CPU resolves it); an experiment without LoRA shares its record across both."""
     from safecdt_jax.paper.run import experiment_spec
@@ -76,9 +76,12 @@ def test_spec_records_how_lora_ran_only_where_it_changes_bits(monkeypatch):
     # a field added later is in the spec at a value other than the one that reproduces the
     # records made before it, and stays out at that value (so those records are reused)
     assert spec["deploy_config"]["replay_excess"] == "projected"
-    from safecdt_jax.paper import run as paper_run
-    monkeypatch.setitem(paper_run._ADDED_AT, "replay_excess", "projected")
-    assert "replay_excess" not in experiment_spec(main, stage, ckpt)["deploy_config"]
+    paper_rule = experiment_spec(main, PaperPlan(replay_excess="realised"), ckpt)
+    assert "replay_excess" not in paper_rule["deploy_config"]
+    assert {k: v for k, v in spec["deploy_config"].items() if k != "replay_excess"} == \
+        paper_rule["deploy_config"]
+    with pytest.raises(ValueError, match=r"PaperPlan\.replay_excess"):
+        PaperPlan(replay_excess="luck")
     assert experiment_spec(ctg, stage, ckpt) == experiment_spec(ctg, hindsight, ckpt)
     with pytest.raises(ValueError, match=r"PaperPlan\.lora_labels"):
         PaperPlan(lora_labels="luck")

@@ -37,6 +37,10 @@ def paper(
         help="What the LoRA finetuning windows' tokens read: stage (the mean outcome of the "
              "episodes run under the same targets), target or hindsight (the paper's).")]
         = "stage",
+    replay_excess: Annotated[str, typer.Option(
+        help="What the replay weights' excess reads: projected (a cut episode's cost "
+             "extended over the horizon at its own rate) or realised (the paper's).")]
+        = "projected",
     coordinator: Coordinator = None,
     num_processes: NumProcesses = None,
     process_id: ProcessId = None,
@@ -52,7 +56,7 @@ def paper(
         pair_list = tuple(parse_list(pairs, str, "pair"))
         study = "CG1-CG2" if "CG1-CG2" in pair_list else pair_list[0]
         settings = dict(pairs=pair_list, study_pair=study, preset=preset, seed=seed,
-                        lora_labels=lora_labels)
+                        lora_labels=lora_labels, replay_excess=replay_excess)
         if pretrain_seeds is not None:
             settings["pretrain_seeds"] = pretrain_seeds
         plan = (quick_plan(**settings) if quick else

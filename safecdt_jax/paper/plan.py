@@ -63,6 +63,8 @@ class PaperPlan:
             ("stage"; "hindsight" is the paper's rule). Each LoRA experiment records it in its
             spec, beside how its seeds' LoRA gradients ran (`DeployConfig.lora_in_turn` as the
             devices resolve it: in turn on one CPU device, batched elsewhere).
+        replay_excess: `DeployConfig.replay_excess` of every deployment ("projected";
+            "realised" is the paper's reading); an adapting experiment's spec holds it.
     """
 
     pairs: tuple[str, ...] = ("CG1-CG2", "CC1-CC2", "PC1-PC2")
@@ -92,6 +94,7 @@ class PaperPlan:
     kappa: float = 1.0
     seed: int = 0
     lora_labels: str = "stage"
+    replay_excess: str = "projected"
 
     def __post_init__(self) -> None:
         from safecdt_jax.pairs import PAIRS
@@ -109,6 +112,11 @@ class PaperPlan:
         if self.lora_labels not in LABEL_RULES:
             raise ValueError(f"PaperPlan.lora_labels must be one of {', '.join(LABEL_RULES)}, "
                              f"got {self.lora_labels!r}")
+        from safecdt_jax.deploy.config import REPLAY_EXCESS
+
+        if self.replay_excess not in REPLAY_EXCESS:
+            raise ValueError(f"PaperPlan.replay_excess must be one of "
+                             f"{', '.join(REPLAY_EXCESS)}, got {self.replay_excess!r}")
         bad = [p for p in self.pairs if p not in PAIRS]
         if bad or not self.pairs:
             raise ValueError(f"PaperPlan.pairs: unknown pair {', '.join(bad) or '(none)'}; "

@@ -158,7 +158,7 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
             spec |= {"lora_in_turn": in_turn, "lora_labels": plan.lora_labels}
         if _adapts(e):  # every scheduler and LoRA setting decides an adapting run's result,
             # so a changed default is a new experiment, never a stale record reused
-            settings = dataclasses.asdict(DeployConfig())
+            settings = dataclasses.asdict(DeployConfig(replay_excess=plan.replay_excess))
             spec["deploy_config"] = {k: v for k, v in settings.items() if k not in _IN_SPEC
                                      and _ADDED_AT.get(k, _UNSET) != v}
         return spec
@@ -243,7 +243,7 @@ def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan,
     from safecdt_jax.deploy.job import run_deployment
 
     cfg = DeployConfig(episodes=e.episodes, horizon=plan.horizon, budget=plan.budget,
-                       lora_labels=plan.lora_labels)
+                       lora_labels=plan.lora_labels, replay_excess=plan.replay_excess)
     which = ckpts[:e.pretrain_seeds] if e.pretrain_seeds > 1 else ckpts[0]
     results = run_deployment(which, spec["task"], [], [], e.seeds, seed=plan.seed, cfg=cfg,
                              progress=progress, runs=e.runs)
