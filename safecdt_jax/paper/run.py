@@ -160,7 +160,7 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
             # so a changed default is a new experiment, never a stale record reused
             settings = dataclasses.asdict(DeployConfig(replay_excess=plan.replay_excess))
             spec["deploy_config"] = {k: v for k, v in settings.items() if k not in _IN_SPEC
-                                     and _ADDED_AT.get(k, _UNSET) != v}
+                                     and (k, v) not in _ADDED_AT.items()}
         return spec
     return spec | {"algos": list(plan.baseline_algos), "preset": plan.baseline_preset,
                    "stop_over_budget": True, "data": ckpt_id["data"], "env": env_version(target)}
@@ -172,7 +172,6 @@ _IN_SPEC = ("episodes", "horizon", "budget", "lora_labels", "lora_in_turn", "sto
 # DeployConfig fields added after records were made, at the value that reproduces those records:
 # a field at that value stays out of the spec, so the records it did not change are reused.
 _ADDED_AT = {"replay_excess": "realised"}
-_UNSET = object()
 
 
 def _adapts(e: Experiment) -> bool:
