@@ -55,6 +55,12 @@ def booleans(obj: Any, *names: str, optional: bool = False) -> None:
             _fail(obj, name, ("None, " if optional else "") + "True or False")
 
 
+def one_of(obj: Any, name: str, choices: tuple[str, ...]) -> None:
+    """The field is one of `choices` (a rule or algorithm named by text)."""
+    if getattr(obj, name) not in choices:
+        _fail(obj, name, f"one of {', '.join(choices)}")
+
+
 def field_overrides(items: list[str], *classes: type) -> dict[str, Any]:
     """`["steps=20000", "lora_labels=target"]` -> `{"steps": 20000, "lora_labels": "target"}`,
     the `--set FIELD=VALUE` items of a command line: a value is read as an int, a float, a

@@ -86,9 +86,7 @@ class BaselineConfig:
     episode_len: int | None = None
 
     def __post_init__(self):
-        if self.algo not in ALGOS:
-            raise ValueError(f"BaselineConfig.algo must be one of {', '.join(ALGOS)}, "
-                             f"got {self.algo!r}")
+        check.one_of(self, "algo", ALGOS)
         check.integers(self, "steps", "batch", "chunk", "hidden", "vae_hidden", "num_q",
                        "next_actions")
         check.integers(self, "episode_len", optional=True)

@@ -160,12 +160,8 @@ class DeployConfig:
         check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr")
         check.booleans(self, "lora_dropout", "clip_ctg", "stop_over_budget")
         check.booleans(self, "lora_in_turn", optional=True)
-        if self.lora_labels not in LABEL_RULES:
-            raise ValueError(f"DeployConfig.lora_labels must be one of {', '.join(LABEL_RULES)}, "
-                             f"got {self.lora_labels!r}")
-        if self.replay_excess not in REPLAY_EXCESS:
-            raise ValueError(f"DeployConfig.replay_excess must be one of "
-                             f"{', '.join(REPLAY_EXCESS)}, got {self.replay_excess!r}")
+        check.one_of(self, "lora_labels", LABEL_RULES)
+        check.one_of(self, "replay_excess", REPLAY_EXCESS)
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")
         if not 1 <= self.momentum_factor <= self.momentum_max:

@@ -107,16 +107,11 @@ class PaperPlan:
         check.integers(self, "seed", minimum=0)
         check.positive(self, "budget", "kappa")
         check.booleans(self, "train_baselines")
+        from safecdt_jax.deploy.config import REPLAY_EXCESS
         from safecdt_jax.deploy.labels import LABEL_RULES
 
-        if self.lora_labels not in LABEL_RULES:
-            raise ValueError(f"PaperPlan.lora_labels must be one of {', '.join(LABEL_RULES)}, "
-                             f"got {self.lora_labels!r}")
-        from safecdt_jax.deploy.config import REPLAY_EXCESS
-
-        if self.replay_excess not in REPLAY_EXCESS:
-            raise ValueError(f"PaperPlan.replay_excess must be one of "
-                             f"{', '.join(REPLAY_EXCESS)}, got {self.replay_excess!r}")
+        check.one_of(self, "lora_labels", LABEL_RULES)
+        check.one_of(self, "replay_excess", REPLAY_EXCESS)
         bad = [p for p in self.pairs if p not in PAIRS]
         if bad or not self.pairs:
             raise ValueError(f"PaperPlan.pairs: unknown pair {', '.join(bad) or '(none)'}; "

@@ -94,9 +94,7 @@ class PretrainConfig:
                                    and span[0] < span[1]):
                 raise ValueError(f"PretrainConfig.{name} must be () or (lo, hi) with lo < hi, "
                                  f"got {span!r}")
-        if self.labels not in LABELS:
-            raise ValueError(f"PretrainConfig.labels must be one of {', '.join(LABELS)}, "
-                             f"got {self.labels!r}")
+        check.one_of(self, "labels", LABELS)
 
     def replace(self, **changes: Any) -> PretrainConfig:
         """A copy with `changes` applied (validated again)."""
