@@ -162,6 +162,7 @@ def lora_finetune(
     opt = adapter_optimizer(cfg)
     on = jnp.asarray(variant.lora) & (buffer_size(buffer) > 0)
     episodes = buffer if labels is None else labelled_episodes(buffer, labels)
+    episode_costs = buffer.costs.sum(axis=1)  # [capacity], once: the steps only index it
 
     def gradient(lora, base_params, win, weights, drop_key):
         return adapter_gradient(lora, base_params, model_cfg, win, weights, drop_key,
@@ -187,8 +188,7 @@ def lora_finetune(
         if cfg.replay_excess == "projected":
             idx = win.episode_index
             ctg_first = projected_cost_to_go(ctg_first, episodes.lengths[idx],
-                                             episodes.costs[idx].sum(axis=1),
-                                             episodes.costs.shape[1])
+                                             episode_costs[idx], episodes.costs.shape[1])
         weights = replay_weights(ctg_first, valid, lam, budget, cfg, enabled=variant.reweight)
         drop_key = k_drop if cfg.lora_dropout else None
         loss, grads = gradient(lora, base_params, win, weights, drop_key)
