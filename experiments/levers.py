@@ -113,8 +113,9 @@ def main(argv: list[str] | None = None) -> None:
                                "ratio_02_10": costs[0] / costs[-1]})
             for rule in args.rules.split(","):
                 # the default pair of variants keeps the cache names of earlier runs
-                name = rule if variants == ["safe_cdt", "naive_lora"] else f"{rule}_{suffix}"
-                res = sweep(pair, seed, args.edges, name, variants, rule, args.seeds, args.work)
+                folder = rule if variants == ["safe_cdt", "naive_lora"] else f"{rule}_{suffix}"
+                res = sweep(pair, seed, args.edges, folder, variants, rule, args.seeds,
+                            args.work)
                 found = {r["variant"]: per_seed_metrics(r) for r in res["runs"]}
                 found |= {"zero_shot": runs["zero_shot"]} if runs else {}
                 for variant, m in found.items():
