@@ -4,7 +4,7 @@
         [--seeds 0,1,2,3] [--episodes 20] [--token-bins N] [--token-rates]
         [--constant-targets] [--labels episode|policy|auto] [--scale-actions]
         [--standardize-obs] [--relabel-percent P] [--c0 C] [--actions executed|sampled]
-        [--stochastic-actions] [--returns ratios|frontier] [--set FIELD=VALUE ...]
+        [--no-stochastic-actions] [--returns ratios|frontier] [--set FIELD=VALUE ...]
         [--out PATH]
 
 For each source task: the default source data (`ensure_source_data`: the committed experts'
@@ -16,8 +16,10 @@ data's median episode cost, or below 20 itself where the median is lower (PointC
 data have median 0: 60% of their episodes cost nothing, and no policy's mean goes below 0).
 The flags after `--episodes` pretrain a variant of the `cpu` preset (its options:
 docs/METHOD.md sections 0 and 8); `--actions executed` uses source data that record the
-experts' executed actions instead of their sampled ones (section 8); `--stochastic-actions`
-evaluates the same checkpoints acting with samples of the CDT's Gaussian head (section 1).
+experts' executed actions instead of their sampled ones (section 8). The CDT acts with samples
+of its Gaussian head, as every command does by default since 2026-12-07 (section 1; the cells
+are named `cpu+stochastic_actions=True`); `--no-stochastic-actions` evaluates the same
+checkpoints acting with its mean (the cells named `cpu`, the criterion's until then).
 `--returns frontier` evaluates the same checkpoints with each cost target c paired with its own
 return, the data's frontier at c (the 90th percentile of the returns of the episodes costing at
 most c), as OSRL pairs each cost target with a return the data show feasible, instead of one
@@ -239,8 +241,9 @@ def main() -> None:
                     help="trajectory weights max(0, c0 - C) (the cpu default: OSRL's 70)")
     ap.add_argument("--actions", choices=ACTION_RECORDINGS, default=DEFAULT_ACTIONS,
                     help="the source data's action recording (docs/EXPERTS.md)")
-    ap.add_argument("--stochastic-actions", action=on_off,
-                    help="act with samples of the CDT's Gaussian head (--no-: its mean)")
+    ap.add_argument("--stochastic-actions", action=on_off, default=True,
+                    help="act with samples of the CDT's Gaussian head (the default; --no-: "
+                         "its mean, as the checkpoint says)")
     ap.add_argument("--returns", choices=("ratios", "frontier"), default="ratios",
                     help="return targets: half and all of R_ref, or each cost target's "
                          "frontier return in the data")
@@ -256,7 +259,7 @@ def main() -> None:
                                  ("standardize_obs", args.standardize_obs),
                                  ("relabel_percent", args.relabel_percent),
                                  ("c0", args.c0),
-                                 ("stochastic_actions", args.stochastic_actions),
+                                 ("stochastic_actions", args.stochastic_actions or None),
                                  ("returns", None if args.returns == "ratios" else args.returns),
                                  ("actions",
                                   None if args.actions == DEFAULT_ACTIONS else args.actions))

@@ -2,7 +2,7 @@
 
     python -m experiments.levers [--pairs CC1-CC2,PC1-PC2,CG1-CG2] [--ckpt-seeds 0,1,2]
         [--seeds 5] [--rules stage,hindsight,target] [--variants safe_cdt,naive_lora]
-        [--no-fixed] [--edges span|data] [--work DIR] [--out PATH]
+        [--no-fixed] [--edges span|data] [--act ckpt|mean|sample] [--work DIR] [--out PATH]
 
 For each pair and pretraining seed: a `cpu`-preset CDT pretrained on the source task's default
 data (`--edges data`: token ramp edges at the data's quantiles alone, as before 2026-12-06), then,
@@ -11,7 +11,10 @@ in the target task at B = 30 with `--seeds` deployment seeds x 50 episodes:
 - Safe-CDT and naive LoRA under each LoRA label rule (`DeployConfig.lora_labels`), optionally
   with `+`-separated changes: the replay weights' excess rule (`DeployConfig.replay_excess`) or
   any FIELD=VALUE of DeployConfig (`stage+projected+weight_floor=0.01`).
-With `--edges span` the checkpoints are the cache's, the ones `safecdt-jax paper` deploys.
+`--act` picks how every run acts: `sample` (the default, as every command since 2026-12-07),
+`mean`, or `ckpt` (as the checkpoint says: the mean for the `cpu` preset; the sweeps of before
+that default, cached under names without a suffix). With `--edges span` the checkpoints are
+the cache's, the ones `safecdt-jax paper` deploys.
 Per (pair, rule, variant) the table gives the mean over checkpoints x seeds of VR, cost, cost
 over episodes 41-50 and the drift (episodes 41-50 minus 1-10), each with its spread across
 pretraining seeds (std of the checkpoints' means) and across deployment seeds (mean of the
@@ -68,17 +71,22 @@ def deploy_config(rule: str):
     return DeployConfig(lora_labels=labels, **field_overrides(changes, DeployConfig))
 
 
+ACTS = {"ckpt": None, "mean": False, "sample": True}
+
+
 def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule: str,
-          seeds: int, work: Path) -> dict:
-    """One deployment sweep's results record, from `work` or run and written there."""
+          seeds: int, work: Path, act: str = "ckpt") -> dict:
+    """One deployment sweep's results record, from `work` or run and written there; `act`
+    picks how the CDT acts (`ACTS`: the checkpoint's own mode, its mean or samples)."""
     from safecdt_jax.deploy.job import run_deployment, write_results
     from safecdt_jax.pairs import parse_pair
 
-    out = work / "res" / f"{pair}_{edges}_s{seed}_{name}"
+    mode = "" if act == "ckpt" else f"_{act}"
+    out = work / "res" / f"{pair}_{edges}_s{seed}_{name}{mode}"
     if not (out / "results.json").exists():
         res = run_deployment(checkpoint(pair, seed, edges, work), parse_pair(pair)[1], variants,
                              [BUDGET], seeds, seed=seed, cfg=deploy_config(rule),
-                             progress=False)
+                             stochastic_actions=ACTS[act], progress=False)
         write_results(out, res, f"levers {pair} {edges} seed {seed} {name}")
     return json.loads((out / "results.json").read_text())
 
@@ -94,6 +102,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-fixed", action="store_true",
                     help="skip the fixed-ratio sweep (no zero-shot row and no Table 5)")
     ap.add_argument("--edges", default="span", choices=("span", "data"))
+    ap.add_argument("--act", default="sample", choices=tuple(ACTS),
+                    help="how every run acts: as the checkpoint says, its mean, or samples")
     ap.add_argument("--work", type=Path, default=Path("runs/levers"))
     ap.add_argument("--out", type=Path, default=Path("experiments/results/levers.json"))
     args = ap.parse_args(argv)
@@ -107,7 +117,7 @@ def main(argv: list[str] | None = None) -> None:
             if not args.no_fixed:
                 runs = {r["variant"]: per_seed_metrics(r) for r in sweep(
                     pair, seed, args.edges, "fixed", fixed, "stage", args.seeds,
-                    args.work)["runs"]}
+                    args.work, args.act)["runs"]}
                 costs = [float(runs[v]["cost"].mean()) for v in fixed]
                 table5.append({"pair": pair, "ckpt_seed": seed, "costs": costs,
                                "ratio_02_10": costs[0] / costs[-1]})
@@ -115,7 +125,7 @@ def main(argv: list[str] | None = None) -> None:
                 # the default pair of variants keeps the cache names of earlier runs
                 folder = rule if variants == ["safe_cdt", "naive_lora"] else f"{rule}_{suffix}"
                 res = sweep(pair, seed, args.edges, folder, variants, rule, args.seeds,
-                            args.work)
+                            args.work, args.act)
                 found = {r["variant"]: per_seed_metrics(r) for r in res["runs"]}
                 found |= {"zero_shot": runs["zero_shot"]} if runs else {}
                 for variant, m in found.items():
@@ -128,6 +138,7 @@ def main(argv: list[str] | None = None) -> None:
             for (p, r, v), m in sorted(cells.items())]
     command = "python -m experiments.levers " + " ".join(sys.argv[1:] if argv is None else argv)
     write_json(args.out, {"command": command, "machine": machine(), "edges": args.edges,
+                          "act": args.act,
                           "seeds": args.seeds, "budget": BUDGET, "table5": table5, "rows": rows})
     fmt = lambda s: f"{s['mean']:.1f} ({s['ckpt_std']:.1f} / {s['seed_std']:.1f})"
     body = markdown_table(

@@ -112,7 +112,7 @@ class Deployment:
 def deploy(ckpt: str | os.PathLike, target: str, *, variants: Sequence[str] = ("safe_cdt",),
            budgets: Sequence[float] = (30.0,), seeds: int = 15, seed: int = 0,
            episodes: int | None = None, config=None,
-           dynamics: Sequence[Mapping[str, float]] = ({},), sample_actions: bool | None = None,
+           dynamics: Sequence[Mapping[str, float]] = ({},), sample_actions: bool | None = True,
            progress: bool = False) -> Deployment:
     """Deploy checkpoint `ckpt` into task `target` for every variant x budget x dynamics shift
     and `seeds` seeds, in one compiled sweep.
@@ -121,7 +121,8 @@ def deploy(ckpt: str | os.PathLike, target: str, *, variants: Sequence[str] = ("
     fixed_ctg(0.5)); `budgets`: cost budgets B per episode; `config`: a `DeployConfig` (default
     its defaults) and `episodes` its deployment length; `dynamics`: shifts of the target's
     dynamics ({field: scale}, `{}` nominal); `sample_actions`: act with samples of the policy
-    (True) or its mean (False), None as the checkpoint was trained.
+    (True, the default: `analysis.evaluate.DEFAULT_ACTION_MODE`) or its mean (False), None as
+    the checkpoint says.
     """
     from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.deploy.job import run_deployment
@@ -161,9 +162,10 @@ class Evaluation:
 def evaluate(ckpt: str | os.PathLike, task: str, targets: Sequence[tuple[float, float]], *,
              episodes: int = 20, seed: int = 0, horizon: int | None = None,
              dynamics: Mapping[str, float] | None = None,
-             sample_actions: bool | None = None) -> Evaluation:
+             sample_actions: bool | None = True) -> Evaluation:
     """Roll out checkpoint `ckpt` in `task` for `episodes` episodes at each (return, cost)
-    target, without any adaptation, in one compiled call; prints nothing."""
+    target, without any adaptation, in one compiled call; prints nothing. `sample_actions` as
+    in `deploy`."""
     from safecdt_jax.analysis.evaluate import evaluate_policy, summarize_evaluation
 
     res = evaluate_policy(ckpt, task, [(float(r), float(c)) for r, c in targets], episodes, seed,

@@ -82,11 +82,11 @@ def test_cli_evaluate_prints_and_writes_the_summary(tiny_run):
     assert "cost follows the target at return 5: Spearman" in result.output
     # The CLI's numbers are evaluate_policy's: same key, same layouts, same bits.
     res = evaluate_policy(ckpt, TASK, [(5.0, 0.0), (5.0, 10.0), (5.0, 40.0)], 2, seed=3,
-                          horizon=12)
+                          horizon=12, stochastic_actions=True)
     np.testing.assert_array_equal(np.asarray(summary["costs"]), res["costs"])
     np.testing.assert_array_equal(np.asarray(summary["returns"]), res["returns"])
     assert not list(tmp.glob(".tmp-*"))  # written atomically: no temporary left behind
-    assert summary["stochastic_actions"] is False  # the checkpoint's own setting: the mean
+    assert summary["stochastic_actions"] is True  # the default: samples, not the ckpt's mean
 
 
 def test_cli_evaluate_act_sample_draws_from_the_policy(tiny_run):

@@ -119,12 +119,14 @@ def _deploy_records(base: list[str], folder, extra: dict[str, list[str]]) -> dic
 
 
 def test_deploy_act_sample_overrides_the_checkpoint_and_is_recorded(tiny_run, tmp_path):
+    """`deploy` acts with samples unless `--act` says otherwise, and the mode is recorded."""
     base = _tiny_deploy(tiny_run[1], "zero_shot", episodes=1)
-    records = _deploy_records(base, tmp_path, {act: ["--act", act]
-                                               for act in ("checkpoint", "sample")})
+    records = _deploy_records(base, tmp_path, {act: ["--act", act] if act else []
+                                               for act in ("checkpoint", "sample", "")})
     assert records["checkpoint"]["stochastic_actions"] is False  # the tiny ckpt acts by the mean
     assert records["sample"]["stochastic_actions"] is True
     assert records["sample"]["runs"][0]["metrics"] != records["checkpoint"]["runs"][0]["metrics"]
+    assert records[""]["runs"] == records["sample"]["runs"]  # the default
     result = CliRunner().invoke(app, [*base, "--act", "greedy", "--out", str(tmp_path / "x")])
     assert result.exit_code == 1 and "unknown action mode 'greedy'" in result.output
     assert len(result.output.strip().splitlines()) == 1
@@ -132,12 +134,21 @@ def test_deploy_act_sample_overrides_the_checkpoint_and_is_recorded(tiny_run, tm
 
 def test_deploy_set_picks_the_lora_labels_and_records_them(tiny_run, tmp_path):
     """`--set lora_labels=...` reaches the deployment: the rule is named in results.json, and
-    finetuning on other labels gives other adapters, so other episodes."""
+    finetuning on other labels gives other adapters, so other episodes. The default "auto"
+    runs, and records, "target" for a CDT acting with samples and "stage" for its mean."""
     base = _tiny_deploy(tiny_run[1], "naive_lora", episodes=3)
-    records = _deploy_records(base, tmp_path, {rule: ["--set", f"lora_labels={rule}"]
+    # acting by the mean, as this test was written for: the tiny model's sampled episodes
+    # here give both rules the same tokens
+    records = _deploy_records(base, tmp_path, {rule: ["--set", f"lora_labels={rule}",
+                                                      "--act", "mean"]
                                                for rule in ("stage", "hindsight")})
     for rule, record in records.items():
         assert record["deploy_config"]["lora_labels"] == rule
+    auto = _deploy_records(base, tmp_path / "auto", {
+        "sample": [], "mean": ["--act", "mean"], "target": ["--set", "lora_labels=target"]})
+    assert auto["sample"]["deploy_config"]["lora_labels"] == "target"
+    assert auto["sample"]["runs"] == auto["target"]["runs"]
+    assert auto["mean"]["deploy_config"]["lora_labels"] == "stage"
     stage, hindsight = (records[r]["runs"][0]["metrics"] for r in ("stage", "hindsight"))
     assert stage["cost"][0] == hindsight["cost"][0]  # episode 0 runs before any finetuning
     assert stage["lora_loss"] != hindsight["lora_loss"]

@@ -96,9 +96,19 @@ def test_windows_of_a_labelled_buffer_read_the_labels():
 
 
 def test_every_rule_is_reachable_and_recorded_in_the_config():
-    assert DeployConfig().lora_labels == "stage"
+    assert DeployConfig().lora_labels == "auto"
     for rule in LABEL_RULES:
         assert dataclasses.asdict(DeployConfig(lora_labels=rule))["lora_labels"] == rule
+
+
+def test_auto_labels_are_target_for_a_sampling_cdt_and_stage_for_its_mean():
+    from safecdt_jax.deploy.labels import resolve_label_rule
+
+    assert DeployConfig().for_acting(True).lora_labels == "target"
+    assert DeployConfig().for_acting(False).lora_labels == "stage"
+    for rule in LABEL_RULES:  # a named rule is kept whatever the acting mode
+        assert {resolve_label_rule(rule, acts) for acts in (True, False)} == {rule}
+        assert DeployConfig(lora_labels=rule).for_acting(True).lora_labels == rule
 
 
 def test_support_note_names_only_the_targets_outside():

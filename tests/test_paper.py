@@ -62,10 +62,17 @@ def test_spec_records_how_lora_ran_only_where_it_changes_bits():
     ckpt = {"task": "CarGoal1", "preset": "cpu", "step": 1, "data": "x"}
     exps = {e.key: e for e in experiments(PaperPlan())}
     main, ctg = exps["CG1-CG2_main"], exps["CG1-CG2_ctg"]  # with LoRA; fixed ratios only
-    stage, hindsight = PaperPlan(), PaperPlan(lora_labels="hindsight")
+    stage, hindsight = PaperPlan(lora_labels="stage"), PaperPlan(lora_labels="hindsight")
     spec = experiment_spec(main, stage, ckpt)
     assert (spec["lora_in_turn"], spec["lora_labels"]) == (True, "stage")  # one CPU device
     assert experiment_spec(main, hindsight, ckpt) == {**spec, "lora_labels": "hindsight"}
+    # "auto" is recorded as the rule it runs: target acting with samples (the default), stage
+    # with the mean; under "checkpoint" the checkpoint's identity decides, so it stays "auto"
+    rule = {act: experiment_spec(main, PaperPlan(act=act), ckpt)["lora_labels"]
+            for act in ("sample", "mean", "checkpoint")}
+    assert rule == {"sample": "target", "mean": "stage", "checkpoint": "auto"}
+    assert experiment_spec(main, PaperPlan(), ckpt) == experiment_spec(
+        main, PaperPlan(act="sample", lora_labels="target"), ckpt)
     assert "lora_labels" not in experiment_spec(ctg, stage, ckpt)
     # an adapting run's spec holds every scheduler and LoRA setting: a changed default is a
     # new experiment; the fixed-target runs of Tables 5 and 6 depend on none of them
@@ -85,6 +92,34 @@ def test_spec_records_how_lora_ran_only_where_it_changes_bits():
     assert experiment_spec(ctg, stage, ckpt) == experiment_spec(ctg, hindsight, ckpt)
     with pytest.raises(ValueError, match=r"PaperPlan\.lora_labels"):
         PaperPlan(lora_labels="luck")
+
+
+def test_acting_mode_is_in_the_spec_unless_the_checkpoints_own_and_reaches_the_deployment(
+        monkeypatch, tmp_path):
+    """`PaperPlan.act` other than "checkpoint" enters every deployment's spec (the fixed-ratio
+    ones too: how the CDT acts decides every rollout), never the baselines'; "checkpoint"
+    leaves the older specs as they were; `_run_deploy` hands the mode to the deployment."""
+    import safecdt_jax.deploy.job as job
+    from safecdt_jax.paper.run import _run_deploy, experiment_spec
+
+    ckpt = {"task": "CarGoal1", "preset": "cpu", "step": 1, "data": "x"}
+    exps = {e.key: e for e in experiments(PaperPlan())}
+    for key in ("CG1-CG2_ctg", "CG1-CG2_source_ctg"):
+        own = experiment_spec(exps[key], PaperPlan(act="checkpoint"), ckpt)
+        assert "act" not in own
+        assert experiment_spec(exps[key], PaperPlan(), ckpt) == {**own, "act": "sample"}
+    base = exps["CG1-CG2_baselines"]
+    assert experiment_spec(base, PaperPlan(act="mean"), ckpt) == \
+        experiment_spec(base, PaperPlan(), ckpt)
+    with pytest.raises(ValueError, match=r"PaperPlan\.act must be one of checkpoint, mean"):
+        PaperPlan(act="greedy")
+    seen = []
+    monkeypatch.setattr(job, "run_deployment", lambda *a, **k: seen.append(
+        k["stochastic_actions"]) or {"runs": []})
+    main = exps["CG1-CG2_main"]
+    for act in ("checkpoint", "mean", "sample"):
+        _run_deploy(main, {"task": "CarGoal2"}, PaperPlan(act=act), [tmp_path] * 3, False)
+    assert seen == [None, False, True]
 
 
 def test_switch_deltas_and_direction_by_hand():

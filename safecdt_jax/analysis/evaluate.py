@@ -41,9 +41,18 @@ def parse_targets(text: str) -> list[tuple[float, float]]:
 
 ACTION_MODES = {"checkpoint": None, "mean": False, "sample": True}
 
+# How every entry point (the CLI's `--act`, `PaperPlan.act`, `api.deploy` / `api.evaluate`)
+# makes the CDT act unless told: samples of its policy. Every data set's labels are outcomes of
+# experts that acted with samples, and so are its recorded actions, so a clone acting with its
+# mean is another policy than the one its tokens describe; acting with samples cut zero-shot's
+# VR from 41.6 to 28.7% on CC1-CC2 and from 20.2 to 11.8% on PC1-PC2 (docs/METHOD.md
+# section 1). The functions under them take None for the checkpoint's own
+# `CDTConfig.stochastic_actions` (False, OSRL's mean, in every preset).
+DEFAULT_ACTION_MODE = "sample"
+
 
 def parse_action_mode(text: str) -> bool | None:
-    """`--act` of `evaluate` and `deploy`: "checkpoint" -> None (the checkpoint's own
+    """`--act` of `evaluate`, `deploy` and `run`: "checkpoint" -> None (the checkpoint's own
     `CDTConfig.stochastic_actions`), "mean" -> False, "sample" -> True."""
     if text not in ACTION_MODES:
         raise ValueError(f"unknown action mode {text!r}: expected one of "

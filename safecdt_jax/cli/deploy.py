@@ -6,6 +6,7 @@ from typing import Annotated
 
 import typer
 
+from safecdt_jax.analysis.evaluate import DEFAULT_ACTION_MODE, parse_action_mode
 from safecdt_jax.cli.app import Coordinator, NumProcesses, ProcessId, app, fail, join_processes
 from safecdt_jax.deploy.config import VARIANT_SPECS, DeployConfig
 from safecdt_jax.progress import Bar
@@ -56,13 +57,13 @@ def _check_runs(variant: str, budget: str, episodes: int, dynamics: str | None =
 
 
 Act = Annotated[str, typer.Option(
-    help="How the CDT acts: checkpoint (its own setting), mean (the policy mean, OSRL's) or "
-         "sample (a sample of the policy's Gaussian each step).")]
+    help="How the CDT acts: sample (a sample of the policy's Gaussian each step, as the "
+         "experts behind its data acted), mean (the policy mean, OSRL's) or checkpoint (its "
+         "own setting).")]
 
 
 def _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, seed, out, title,
-                      dynamics=None, act="checkpoint", settings=None):
-    from safecdt_jax.analysis.evaluate import parse_action_mode
+                      dynamics=None, act=DEFAULT_ACTION_MODE, settings=None):
     from safecdt_jax.deploy.job import parse_list, run_deployment, write_results
     from safecdt_jax.envs.dynamics import parse_dynamics
 
@@ -95,7 +96,7 @@ def deploy(
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
-    act: Act = "checkpoint",
+    act: Act = DEFAULT_ACTION_MODE,
     settings: SetFields = None,
     coordinator: Coordinator = None,
     num_processes: NumProcesses = None,
@@ -104,7 +105,6 @@ def deploy(
     """Deploys a pretrained CDT in the pair's target task: every variant x budget x dynamics
     shift x seed at once (the seeds sharded over every device of N cooperating processes with
     --num-processes, docs/CLI.md)."""
-    from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.pairs import parse_pair
 
     join_processes(coordinator, num_processes, process_id)
@@ -134,6 +134,7 @@ def run(
     seed: Annotated[int, typer.Option(min=0, help="Base PRNG seed.")] = 0,
     out: Annotated[Path | None, typer.Option(help="Output folder (default runs/PAIR).")] = None,
     dynamics: Dynamics = None,
+    act: Act = DEFAULT_ACTION_MODE,
     settings: SetFields = None,
     coordinator: Coordinator = None,
     num_processes: NumProcesses = None,
@@ -152,6 +153,7 @@ def run(
     try:
         source, target = parse_pair(pair)
         _check_runs(variant, budget, episodes, dynamics, settings)
+        parse_action_mode(act)
         typer.echo(f"[1/3] source data: {source}, expert behaviour")
 
         def collect():
@@ -171,7 +173,7 @@ def run(
                    f"x {episodes} episodes")
         _deploy_and_write(ckpt, target, variant, budget, seeds, episodes, seed,
                           out or Path("runs") / pair, f"Safe-CDT {pair} ({preset} preset)",
-                          dynamics, settings=settings)
+                          dynamics, act, settings)
     except ValueError as e:
         fail(e)
     typer.echo(f"total {time.perf_counter() - start:.0f} s")
@@ -194,7 +196,7 @@ def evaluate(
     dynamics: Annotated[str | None, typer.Option(
         help="Shift the task's dynamics, e.g. friction_scale=0.5,gear_scale=0.8 (one value per "
              "field here; `deploy` takes a list of values as a run axis).")] = None,
-    act: Act = "checkpoint",
+    act: Act = DEFAULT_ACTION_MODE,
 ) -> None:
     """Rolls out the CDT for each (return, cost) target; prints mean return, cost and VR, and
     how the mean cost follows the cost target (Spearman, per return target)."""
@@ -204,7 +206,6 @@ def evaluate(
         from safecdt_jax.analysis.evaluate import (
             evaluate_checkpoint,
             evaluation_table,
-            parse_action_mode,
             parse_targets,
         )
         from safecdt_jax.data import summarize_dataset

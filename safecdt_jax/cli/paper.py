@@ -34,13 +34,17 @@ def paper(
         min=1, help="Pretrained checkpoints per pair behind Tables 1-3 (default 3; 1 with "
                     "--quick): each row runs as checkpoints x deployment seeds.")] = None,
     lora_labels: Annotated[str, typer.Option(
-        help="What the LoRA finetuning windows' tokens read: stage (the mean outcome of the "
-             "episodes run under the same targets), target or hindsight (the paper's).")]
-        = "stage",
+        help="What the LoRA finetuning windows' tokens read: auto (target when the CDT acts "
+             "with samples, else stage), stage (the mean outcome of the episodes run under the "
+             "same targets), target or hindsight (the paper's).")]
+        = "auto",
     replay_excess: Annotated[str, typer.Option(
         help="What the replay weights' excess reads: projected (a cut episode's cost "
              "extended over the horizon at its own rate) or realised (the paper's).")]
         = "projected",
+    act: Annotated[str, typer.Option(
+        help="How the CDT acts in every deployment: sample (samples of its policy), mean or "
+             "checkpoint (as it was saved: the mean in every preset).")] = "sample",
     coordinator: Coordinator = None,
     num_processes: NumProcesses = None,
     process_id: ProcessId = None,
@@ -56,7 +60,7 @@ def paper(
         pair_list = tuple(parse_list(pairs, str, "pair"))
         study = "CG1-CG2" if "CG1-CG2" in pair_list else pair_list[0]
         settings = dict(pairs=pair_list, study_pair=study, preset=preset, seed=seed,
-                        lora_labels=lora_labels, replay_excess=replay_excess)
+                        lora_labels=lora_labels, replay_excess=replay_excess, act=act)
         if pretrain_seeds is not None:
             settings["pretrain_seeds"] = pretrain_seeds
         plan = (quick_plan(**settings) if quick else

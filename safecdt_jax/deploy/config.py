@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 
 from safecdt_jax import validate as check
-from safecdt_jax.deploy.labels import LABEL_RULES
+from safecdt_jax.deploy.labels import LABEL_CHOICES, resolve_label_rule
 
 # What the replay weights' excess reads (`DeployConfig.replay_excess`).
 REPLAY_EXCESS: tuple[str, ...] = ("realised", "projected")
@@ -81,8 +81,10 @@ class DeployConfig:
             the `cpu` preset). The adapters start at deployment, so any rank deploys any
             checkpoint; the update keeps the checkpoint's `lora_alpha / r` scale rule.
         lora_labels: what the finetuning windows' return and cost tokens read
-            (`deploy.labels`, docs/METHOD.md section 4). `"stage"` (default): every episode run
-            under the same targets is labelled with their mean return and cost per full
+            (`deploy.labels`, docs/METHOD.md section 4). `"auto"` (default): `"target"` for a
+            CDT acting with samples, `"stage"` for one acting with its mean (resolved per
+            policy: `for_acting`; results.json records the rule that ran). `"stage"`: every
+            episode run under the same targets is labelled with their mean return and cost per full
             episode (pooled over their steps, so an episode cut at the budget counts at the
             rate it ran), the meaning the `cpu` preset's policy-mean pretraining labels give
             the tokens. `"target"`: the targets the episode was run under. `"hindsight"`: the
@@ -146,7 +148,7 @@ class DeployConfig:
     lora_batch: int = 32
     lora_lr: float = 1e-4
     lora_rank: int = 0
-    lora_labels: str = "stage"
+    lora_labels: str = "auto"
     lora_dropout: bool = False
     lora_in_turn: bool | None = None
     lora_micro_batch: int = 0
@@ -160,7 +162,7 @@ class DeployConfig:
         check.positive(self, "z", "cr_step", "rr_step", "budget", "lambda_rise", "lora_lr")
         check.booleans(self, "lora_dropout", "clip_ctg", "stop_over_budget")
         check.booleans(self, "lora_in_turn", optional=True)
-        check.one_of(self, "lora_labels", LABEL_RULES)
+        check.one_of(self, "lora_labels", LABEL_CHOICES)
         check.one_of(self, "replay_excess", REPLAY_EXCESS)
         if not 0 <= self.tighten_below <= self.relax_above <= 1:
             raise ValueError("DeployConfig needs 0 <= tighten_below <= relax_above <= 1")
@@ -182,6 +184,12 @@ class DeployConfig:
     def replace(self, **changes: Any) -> DeployConfig:
         """Return a copy with `changes` applied (validated again)."""
         return dataclasses.replace(self, **changes)
+
+    def for_acting(self, stochastic_actions: bool) -> DeployConfig:
+        """This config with `lora_labels` "auto" made the rule for a CDT that acts with
+        samples (`stochastic_actions`) or its mean (`deploy.labels.resolve_label_rule`)."""
+        return self.replace(lora_labels=resolve_label_rule(self.lora_labels,
+                                                           bool(stochastic_actions)))
 
     def resolved(self, devices: list | None = None) -> DeployConfig:
         """This config with its per-device choices made: `lora_in_turn` None becomes True

@@ -54,7 +54,8 @@ def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None,
     cfg, r_ref)`. `cfg` defaults to `DeployConfig()`; the token encoding comes with the policy's
     model config, as it was trained, and so does how it acts unless `stochastic_actions` (True:
     samples of the policy, False: its mean) overrides it, and so does the adapters' rank where
-    `cfg.lora_rank` is set. `r_ref` is the checkpoint's reference return (raw units). Raises
+    `cfg.lora_rank` is set; `cfg`'s "auto" LoRA labels become the rule for how it acts.
+    `r_ref` is the checkpoint's reference return (raw units). Raises
     CheckpointError if the model does not fit the task."""
     from safecdt_jax import envs
     from safecdt_jax.deploy.config import DeployConfig
@@ -63,6 +64,7 @@ def load_deployment(ckpt: str | os.PathLike, target: str, cfg=None,
     env, env_params = envs.make(target)
     policy = with_action_mode(load_policy(ckpt, task=target), stochastic_actions)
     cfg = (DeployConfig() if cfg is None else cfg).resolved()
+    cfg = cfg.for_acting(policy.cfg.stochastic_actions)
     if cfg.lora_rank:  # the adapters are made at deployment: any rank fits the base model
         policy = policy._replace(cfg=policy.cfg.replace(lora_rank=cfg.lora_rank))
     return env, env_params, policy, cfg, float(policy.meta["dataset"]["reference_return"])

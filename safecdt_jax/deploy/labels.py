@@ -14,6 +14,11 @@ Three rules, chosen by `DeployConfig.lora_labels`:
 - `"target"`: every episode is labelled with the targets it was run under.
 - `"hindsight"`: each episode's own realised return and cost (the paper's rule, OSRL's labels).
 
+`"auto"` (`DeployConfig`'s default) picks by how the CDT acts (`resolve_label_rule`): `"target"`
+when it acts with samples, where the replay weights make the finetuning a weighted cloning of
+its own in-budget samples, and `"stage"` when it acts with its mean, where `"target"` labels
+teach nothing (docs/METHOD.md section 4).
+
 Everything here is a pure function of arrays, jit- and vmap-able.
 """
 
@@ -22,6 +27,15 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 LABEL_RULES: tuple[str, ...] = ("stage", "target", "hindsight")
+LABEL_CHOICES: tuple[str, ...] = ("auto", *LABEL_RULES)
+
+
+def resolve_label_rule(rule: str, stochastic_actions: bool) -> str:
+    """The rule of `LABEL_RULES` that `rule` (`LABEL_CHOICES`) names for a CDT acting with
+    samples (`stochastic_actions` True) or its mean: `"auto"` is `"target"` or `"stage"`."""
+    if rule != "auto":
+        return rule
+    return "target" if stochastic_actions else "stage"
 
 
 def same_targets(rtg, ctg, valid, tolerance: float = 1e-3):

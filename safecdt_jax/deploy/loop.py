@@ -19,7 +19,7 @@ import jax.numpy as jnp
 from safecdt_jax.data.buffer import buffer_add, buffer_init
 from safecdt_jax.deploy.config import DeployConfig, Variant
 from safecdt_jax.deploy.finetune import init_adapter_opt, lora_finetune
-from safecdt_jax.deploy.labels import online_labels
+from safecdt_jax.deploy.labels import online_labels, resolve_label_rule
 from safecdt_jax.deploy.reweight import lambda_init, lambda_update
 from safecdt_jax.deploy.rollout import cdt_episode
 from safecdt_jax.deploy.scheduler import (
@@ -152,8 +152,9 @@ def deploy_episodes(
         lam = lambda_update(carry.lam, violations, window, e, cfg, enabled=variant.reweight)
         if finetune:
             # Buffer slot e holds episode e: its capacity is the deployment's length.
-            labels = None if cfg.lora_labels == "hindsight" else online_labels(
-                cfg.lora_labels, history["returns"], history["costs"], buffer.lengths,
+            rule = resolve_label_rule(cfg.lora_labels, model_cfg.stochastic_actions)
+            labels = None if rule == "hindsight" else online_labels(
+                rule, history["returns"], history["costs"], buffer.lengths,
                 history["rtg"], history["ctg"], jnp.arange(cfg.episodes) <= e, buffer.horizon)
             lora, opt_state, aux = lora_finetune(
                 k_lora, carry.lora, carry.opt_state, base_params=base_params,

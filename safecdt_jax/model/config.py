@@ -81,7 +81,9 @@ class CDTConfig:
             comes from the experts' exploration noise (the Car, whose wheel torques saturate at
             +-0.02 so nearly every sampled action is a sign coin), a clone that acts with its
             mean drives otherwise than the episodes whose labels it was given
-            (docs/METHOD.md section 8). Pretraining is unchanged.
+            (docs/METHOD.md section 8). Pretraining is unchanged. What `--act checkpoint`
+            (None in the Python functions) reads; every entry point acts with samples unless
+            told (`analysis.evaluate.DEFAULT_ACTION_MODE`, docs/METHOD.md section 1).
         return_edges: increasing bin edges of the ramps for the return-to-go input (scaled units,
             RTG * reward_scale); empty until fitted. Values outside them saturate.
         cost_edges: the same for the cost-to-go input (CTG * cost_scale, before any transform:

@@ -60,11 +60,18 @@ class PaperPlan:
             confidence coefficient (docs/METHOD.md section 7).
         seed: base PRNG seed of every experiment.
         lora_labels: `DeployConfig.lora_labels` of every deployment with LoRA steps
-            ("stage"; "hindsight" is the paper's rule). Each LoRA experiment records it in its
-            spec, beside how its seeds' LoRA gradients ran (`DeployConfig.lora_in_turn` as the
-            devices resolve it: in turn on one CPU device, batched elsewhere).
+            ("auto": "target" acting with samples, "stage" with the mean; "hindsight" is the
+            paper's rule; a spec holds the rule `act` resolves it to). Each LoRA experiment
+            records it in its spec, beside how its seeds' LoRA gradients ran
+            (`DeployConfig.lora_in_turn` as the devices resolve it: in turn on one CPU device,
+            batched elsewhere).
         replay_excess: `DeployConfig.replay_excess` of every deployment ("projected";
             "realised" is the paper's reading); an adapting experiment's spec holds it.
+        act: how the CDT acts in every deployment: "sample" (samples of its policy, the
+            default since 2026-12-07: `analysis.evaluate.DEFAULT_ACTION_MODE`), "mean" or
+            "checkpoint" (its own `CDTConfig.stochastic_actions`, the mean in every preset;
+            docs/METHOD.md section 1). A spec holds it unless "checkpoint", so the records
+            made before it existed are reused under `--act checkpoint`.
     """
 
     pairs: tuple[str, ...] = ("CG1-CG2", "CC1-CC2", "PC1-PC2")
@@ -93,8 +100,9 @@ class PaperPlan:
     alpha: float = 0.05
     kappa: float = 1.0
     seed: int = 0
-    lora_labels: str = "stage"
+    lora_labels: str = "auto"
     replay_excess: str = "projected"
+    act: str = "sample"
 
     def __post_init__(self) -> None:
         from safecdt_jax.pairs import PAIRS
@@ -108,10 +116,13 @@ class PaperPlan:
         check.positive(self, "budget", "kappa")
         check.booleans(self, "train_baselines")
         from safecdt_jax.deploy.config import REPLAY_EXCESS
-        from safecdt_jax.deploy.labels import LABEL_RULES
+        from safecdt_jax.deploy.labels import LABEL_CHOICES
 
-        check.one_of(self, "lora_labels", LABEL_RULES)
+        check.one_of(self, "lora_labels", LABEL_CHOICES)
         check.one_of(self, "replay_excess", REPLAY_EXCESS)
+        from safecdt_jax.analysis.evaluate import ACTION_MODES
+
+        check.one_of(self, "act", tuple(ACTION_MODES))
         bad = [p for p in self.pairs if p not in PAIRS]
         if bad or not self.pairs:
             raise ValueError(f"PaperPlan.pairs: unknown pair {', '.join(bad) or '(none)'}; "

@@ -152,10 +152,12 @@ def experiment_spec(e: Experiment, plan: PaperPlan, ckpt_id: Mapping[str, Any]) 
         spec |= {"task": task, "env": env_version(task),
                  "runs": [[v, float(b)] for v, b in e.runs], "horizon": plan.horizon,
                  "seed": plan.seed, "stop_over_budget": True, "checkpoint": dict(ckpt_id)}
+        if plan.act != "checkpoint":  # acting as the checkpoint says keeps the older specs
+            spec["act"] = plan.act
         # How LoRA ran changes the bits of a LoRA run only: runs without LoRA share records.
         if _has_lora(e):
             in_turn = DeployConfig().resolved().lora_in_turn
-            spec |= {"lora_in_turn": in_turn, "lora_labels": plan.lora_labels}
+            spec |= {"lora_in_turn": in_turn, "lora_labels": _label_rule(plan)}
         if _adapts(e):  # every scheduler and LoRA setting decides an adapting run's result,
             # so a changed default is a new experiment, never a stale record reused
             settings = dataclasses.asdict(DeployConfig(replay_excess=plan.replay_excess))
@@ -172,6 +174,16 @@ _IN_SPEC = ("episodes", "horizon", "budget", "lora_labels", "lora_in_turn", "sto
 # DeployConfig fields added after records were made, at the value that reproduces those records:
 # a field at that value stays out of the spec, so the records it did not change are reused.
 _ADDED_AT = {"replay_excess": "realised"}
+
+
+def _label_rule(plan: PaperPlan) -> str:
+    """The LoRA label rule the plan's deployments run: "auto" resolved where `plan.act` says
+    how the CDT acts (kept "auto" under "checkpoint", where the checkpoint's identity decides)."""
+    from safecdt_jax.analysis.evaluate import parse_action_mode
+    from safecdt_jax.deploy.labels import resolve_label_rule
+
+    acts = parse_action_mode(plan.act)
+    return plan.lora_labels if acts is None else resolve_label_rule(plan.lora_labels, acts)
 
 
 def _adapts(e: Experiment) -> bool:
@@ -238,6 +250,7 @@ def _run_baselines(spec: Mapping[str, Any], plan: PaperPlan, progress: bool
 
 def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan,
                 ckpts: list[Path], progress: bool) -> dict[str, Any]:
+    from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.deploy.config import DeployConfig
     from safecdt_jax.deploy.job import run_deployment
 
@@ -245,7 +258,8 @@ def _run_deploy(e: Experiment, spec: Mapping[str, Any], plan: PaperPlan,
                        lora_labels=plan.lora_labels, replay_excess=plan.replay_excess)
     which = ckpts[:e.pretrain_seeds] if e.pretrain_seeds > 1 else ckpts[0]
     results = run_deployment(which, spec["task"], [], [], e.seeds, seed=plan.seed, cfg=cfg,
-                             progress=progress, runs=e.runs)
+                             progress=progress, runs=e.runs,
+                             stochastic_actions=parse_action_mode(plan.act))
     return _compact(results)
 
 
