@@ -6,10 +6,12 @@ fair on a noisy machine). Also the compile time of the sweep, cold (empty persis
 fresh process) and warm (the persistent cache filled by that process).
 
     python -m benchmarks.deploy_throughput [--task CarGoal2] [--seeds 1,15,64] [--episodes 5]
+        [--act sample|mean]
 
 The model is the `cpu` preset with random weights: the cost of a deployment does not depend on
 what the weights are. Episodes default to 5 (a whole stage) to keep the run short; env steps/s
-and the seed-scaling ratio do not depend on the episode count.
+and the seed-scaling ratio do not depend on the episode count. `--act`: the CDT acts with samples
+of its policy (the deployment default since 2026-12-07) or its mean.
 """
 
 import argparse
@@ -36,20 +38,23 @@ from safecdt_jax.deploy import (
 from safecdt_jax.model import CDTConfig, init_cdt, with_nominal_edges
 
 
-def setup(task: str, preset: str, episodes: int):
-    """(env, env params, model config, base params, deploy config, safe_cdt spec [1 run])."""
+def setup(task: str, preset: str, episodes: int, act: str = "sample"):
+    """(env, env params, model config, base params, deploy config, safe_cdt spec [1 run]);
+    the model acts with samples of its policy (`act` "sample") or its mean ("mean")."""
     env, params = envs.make(task)
     model_cfg = with_nominal_edges(CDTConfig.preset(preset, env.observation_size,
                                                     env.action_size, env.episode_length))
+    model_cfg = model_cfg.replace(stochastic_actions=act == "sample")
     base = init_cdt(jax.random.PRNGKey(0), model_cfg)
     cfg = DeployConfig(episodes=episodes)
     spec = make_spec(make_variant("safe_cdt", cfg), 30.0, 20.0)
     return env, params, model_cfg, base, cfg, spec
 
 
-def measure(task: str, preset: str, episodes: int, seeds: int, loop: bool, repeats: int) -> dict:
+def measure(task: str, preset: str, episodes: int, seeds: int, loop: bool, repeats: int,
+            act: str = "sample") -> dict:
     """Median seconds of the S-seed sweep call, and of a Python loop over S single-seed calls."""
-    env, params, model_cfg, base, cfg, spec = setup(task, preset, episodes)
+    env, params, model_cfg, base, cfg, spec = setup(task, preset, episodes, act)
     keys = seed_keys(0, seeds)
     specs = stack_specs([spec])
     static = dict(env=env, model_cfg=model_cfg, cfg=cfg)
@@ -126,13 +131,15 @@ def main() -> None:
     ap.add_argument("--loop-max", type=int, default=15,
                     help="Run the Python loop over single-seed calls up to this many seeds.")
     ap.add_argument("--no-compile", action="store_true", help="Skip the compile-time runs.")
+    ap.add_argument("--act", default="sample", choices=("sample", "mean"),
+                    help="The CDT acts with samples of its policy (the default) or its mean.")
     ap.add_argument("--out", default="benchmarks/results/deploy_throughput.json")
     args = ap.parse_args()
 
     rows = []
     for s in (int(x) for x in args.seeds.split(",")):
         rows.append(measure(args.task, args.preset, args.episodes, s, s <= args.loop_max,
-                            args.repeats))
+                            args.repeats, args.act))
         print(rows[-1], flush=True)
     base = next((r for r in rows if r["seeds"] == 1), None)
     for r in rows:
@@ -145,13 +152,14 @@ def main() -> None:
           f"{r['vs_1_seed']:.2f}", f"{r['loop_s']:.2f}" if "loop_s" in r else "-",
           f"{r['loop_over_sweep']:.1f}x" if "loop_s" in r else "-"] for r in rows])
     print(f"\nSafe-CDT deployment, {args.task}, {args.preset} preset, {args.episodes} episodes "
-          f"per seed ({jax.default_backend()})\n")
+          f"per seed, acting with its {args.act} ({jax.default_backend()})\n")
     print(table)
     if compile_s:
         print(f"\ncompile (1 episode, 2 seeds, fresh process): cold {compile_s['cold_s']:.1f} s, "
               f"warm persistent cache {compile_s['warm_s']:.1f} s")
     write_json(args.out, {"machine": machine(), "task": args.task, "preset": args.preset,
-                          "episodes": args.episodes, "rows": rows, "compile": compile_s,
+                          "episodes": args.episodes, "act": args.act, "rows": rows,
+                          "compile": compile_s,
                           "table": table})
 
 
