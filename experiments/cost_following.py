@@ -46,6 +46,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json
+from safecdt_jax.analysis.evaluate import ACTION_MODES, DEFAULT_ACTION_MODE
 from safecdt_jax.paths import DEFAULT_ACTIONS
 from safecdt_jax.stats import doubling_slope, frontier_returns
 
@@ -241,7 +242,8 @@ def main() -> None:
                     help="trajectory weights max(0, c0 - C) (the cpu default: OSRL's 70)")
     ap.add_argument("--actions", choices=ACTION_RECORDINGS, default=DEFAULT_ACTIONS,
                     help="the source data's action recording (docs/EXPERTS.md)")
-    ap.add_argument("--stochastic-actions", action=on_off, default=True,
+    ap.add_argument("--stochastic-actions", action=on_off,
+                    default=ACTION_MODES[DEFAULT_ACTION_MODE],
                     help="act with samples of the CDT's Gaussian head (the default; --no-: "
                          "its mean, as the checkpoint says)")
     ap.add_argument("--returns", choices=("ratios", "frontier"), default="ratios",

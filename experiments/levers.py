@@ -2,7 +2,8 @@
 
     python -m experiments.levers [--pairs CC1-CC2,PC1-PC2,CG1-CG2] [--ckpt-seeds 0,1,2]
         [--seeds 5] [--rules stage,hindsight,target] [--variants safe_cdt,naive_lora]
-        [--no-fixed] [--edges span|data] [--act ckpt|mean|sample] [--work DIR] [--out PATH]
+        [--no-fixed] [--edges span|data] [--act sample|mean|checkpoint] [--work DIR]
+        [--out PATH]
 
 For each pair and pretraining seed: a `cpu`-preset CDT pretrained on the source task's default
 data (`--edges data`: token ramp edges at the data's quantiles alone, as before 2026-12-06), then,
@@ -12,7 +13,7 @@ in the target task at B = 30 with `--seeds` deployment seeds x 50 episodes:
   with `+`-separated changes: the replay weights' excess rule (`DeployConfig.replay_excess`) or
   any FIELD=VALUE of DeployConfig (`stage+projected+weight_floor=0.01`).
 `--act` picks how every run acts: `sample` (the default, as every command since 2026-12-07),
-`mean`, or `ckpt` (as the checkpoint says: the mean for the `cpu` preset; the sweeps of before
+`mean`, or `checkpoint` (as the checkpoint says: the mean for the `cpu` preset; the sweeps of before
 that default, cached under names without a suffix). With `--edges span` the checkpoints are
 the cache's, the ones `safecdt-jax paper` deploys.
 Per (pair, rule, variant) the table gives the mean over checkpoints x seeds of VR, cost, cost
@@ -30,6 +31,7 @@ import sys
 from pathlib import Path
 
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
+from safecdt_jax.analysis.evaluate import ACTION_MODES, DEFAULT_ACTION_MODE
 from safecdt_jax.stats import per_seed_metrics, seed_spread
 
 RATIOS = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -71,22 +73,21 @@ def deploy_config(rule: str):
     return DeployConfig(lora_labels=labels, **field_overrides(changes, DeployConfig))
 
 
-ACTS = {"ckpt": None, "mean": False, "sample": True}
-
-
 def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule: str,
-          seeds: int, work: Path, act: str = "ckpt") -> dict:
+          seeds: int, work: Path, act: str = "checkpoint") -> dict:
     """One deployment sweep's results record, from `work` or run and written there; `act`
-    picks how the CDT acts (`ACTS`: the checkpoint's own mode, its mean or samples)."""
+    picks how the CDT acts (`analysis.evaluate.ACTION_MODES`: the checkpoint's own mode, its
+    mean or samples)."""
+    from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.deploy.job import run_deployment, write_results
     from safecdt_jax.pairs import parse_pair
 
-    mode = "" if act == "ckpt" else f"_{act}"
+    mode = "" if act == "checkpoint" else f"_{act}"
     out = work / "res" / f"{pair}_{edges}_s{seed}_{name}{mode}"
     if not (out / "results.json").exists():
         res = run_deployment(checkpoint(pair, seed, edges, work), parse_pair(pair)[1], variants,
                              [BUDGET], seeds, seed=seed, cfg=deploy_config(rule),
-                             stochastic_actions=ACTS[act], progress=False)
+                             stochastic_actions=parse_action_mode(act), progress=False)
         write_results(out, res, f"levers {pair} {edges} seed {seed} {name}")
     return json.loads((out / "results.json").read_text())
 
@@ -102,7 +103,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--no-fixed", action="store_true",
                     help="skip the fixed-ratio sweep (no zero-shot row and no Table 5)")
     ap.add_argument("--edges", default="span", choices=("span", "data"))
-    ap.add_argument("--act", default="sample", choices=tuple(ACTS),
+    ap.add_argument("--act", default=DEFAULT_ACTION_MODE, choices=tuple(ACTION_MODES),
                     help="how every run acts: as the checkpoint says, its mean, or samples")
     ap.add_argument("--work", type=Path, default=Path("runs/levers"))
     ap.add_argument("--out", type=Path, default=Path("experiments/results/levers.json"))

@@ -5,6 +5,7 @@ from typing import Annotated
 
 import typer
 
+from safecdt_jax.analysis.evaluate import DEFAULT_ACTION_MODE
 from safecdt_jax.cli.app import (
     Coordinator,
     NumProcesses,
@@ -44,7 +45,8 @@ def paper(
         = "projected",
     act: Annotated[str, typer.Option(
         help="How the CDT acts in every deployment: sample (samples of its policy), mean or "
-             "checkpoint (as it was saved: the mean in every preset).")] = "sample",
+             "checkpoint (as it was saved: the mean in every preset).")]
+        = DEFAULT_ACTION_MODE,
     coordinator: Coordinator = None,
     num_processes: NumProcesses = None,
     process_id: ProcessId = None,
