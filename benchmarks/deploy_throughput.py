@@ -25,6 +25,7 @@ import jax
 
 from benchmarks.common import machine, markdown_table, median, write_json
 from safecdt_jax import envs
+from safecdt_jax.analysis.evaluate import ACTION_MODES, DEFAULT_ACTION_MODE
 from safecdt_jax.deploy import (
     DeployConfig,
     deploy,
@@ -38,13 +39,13 @@ from safecdt_jax.deploy import (
 from safecdt_jax.model import CDTConfig, init_cdt, with_nominal_edges
 
 
-def setup(task: str, preset: str, episodes: int, act: str = "sample"):
+def setup(task: str, preset: str, episodes: int, act: str = DEFAULT_ACTION_MODE):
     """(env, env params, model config, base params, deploy config, safe_cdt spec [1 run]);
     the model acts with samples of its policy (`act` "sample") or its mean ("mean")."""
     env, params = envs.make(task)
     model_cfg = with_nominal_edges(CDTConfig.preset(preset, env.observation_size,
                                                     env.action_size, env.episode_length))
-    model_cfg = model_cfg.replace(stochastic_actions=act == "sample")
+    model_cfg = model_cfg.replace(stochastic_actions=ACTION_MODES[act])
     base = init_cdt(jax.random.PRNGKey(0), model_cfg)
     cfg = DeployConfig(episodes=episodes)
     spec = make_spec(make_variant("safe_cdt", cfg), 30.0, 20.0)
@@ -52,7 +53,7 @@ def setup(task: str, preset: str, episodes: int, act: str = "sample"):
 
 
 def measure(task: str, preset: str, episodes: int, seeds: int, loop: bool, repeats: int,
-            act: str = "sample") -> dict:
+            act: str = DEFAULT_ACTION_MODE) -> dict:
     """Median seconds of the S-seed sweep call, and of a Python loop over S single-seed calls."""
     env, params, model_cfg, base, cfg, spec = setup(task, preset, episodes, act)
     keys = seed_keys(0, seeds)
@@ -131,7 +132,7 @@ def main() -> None:
     ap.add_argument("--loop-max", type=int, default=15,
                     help="Run the Python loop over single-seed calls up to this many seeds.")
     ap.add_argument("--no-compile", action="store_true", help="Skip the compile-time runs.")
-    ap.add_argument("--act", default="sample", choices=("sample", "mean"),
+    ap.add_argument("--act", default=DEFAULT_ACTION_MODE, choices=("sample", "mean"),
                     help="The CDT acts with samples of its policy (the default) or its mean.")
     ap.add_argument("--out", default="benchmarks/results/deploy_throughput.json")
     args = ap.parse_args()
