@@ -4,11 +4,11 @@
 
 Runs the README's test command (`python -m pytest -q`: one process per core, pytest-xdist) in
 fresh processes on one empty temporary cache folder (`JAX_COMPILATION_CACHE_DIR`, which
-tests/conftest.py reads before it falls back to `.cache/jax-tests`): the first run compiles
-every program and writes it to the cache, the next loads them. Each run reports its wall time,
-pytest's summary line and the cache's size afterwards. The saving is cold minus warm; what is
-left warm is tracing, the tests' own computation and the processes' start. Writes
-benchmarks/results/suite_cache.{json,md}.
+tests/conftest.py reads before it falls back to `~/.cache/safecdt-jax-tests/xla`): the first
+run compiles every program and writes it to the cache, the next loads them. Each run reports
+its wall time, pytest's summary line and the cache's size afterwards. The saving is cold minus
+warm; what is left warm is tracing, the tests' own computation and the processes' start.
+Writes benchmarks/results/suite_cache.{json,md}.
 """
 
 from __future__ import annotations
