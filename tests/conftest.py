@@ -6,7 +6,8 @@ from pathlib import Path
 # Outside the checkout, so a fresh clone (CI's, or a second worktree) starts from the programs
 # an earlier run compiled instead of compiling the whole suite again (about 3x the warm time):
 # entries are keyed by the program, the JAX version and the flags, so a stale one is never
-# loaded for another program. `$JAX_COMPILATION_CACHE_DIR` moves it.
+# loaded for another program. `$JAX_COMPILATION_CACHE_DIR` moves it (the keys hold the folder's
+# path, through XLA's autotuning cache beside it, so a copied cache folder starts cold).
 CACHE_DIR = (Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
              / "safecdt-jax-tests" / "xla")
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
