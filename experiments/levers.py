@@ -147,11 +147,12 @@ def main(argv: list[str] | None = None) -> None:
         [[r["pair"], r["labels"], r["variant"], r["checkpoints"], fmt(r["vr"]), fmt(r["cost"]),
           fmt(r["late"]), fmt(r["drift"]), fmt(r["reward"])] for r in rows])
     body += ("\n\nmean over checkpoints x deployment seeds (spread across pretraining seeds / "
-             "across deployment seeds)\n\n")
-    body += markdown_table(
-        ["pair", "ckpt seed", *[f"cost @ CR {r:g}" for r in RATIOS], "CR 0.2 / CR 1"],
-        [[t["pair"], t["ckpt_seed"], *[f"{c:.2f}" for c in t["costs"]],
-          f"{t['ratio_02_10']:.2f}"] for t in table5])
+             "across deployment seeds)\n")
+    if table5:  # `--no-fixed` runs no fixed ratios
+        body += "\n" + markdown_table(
+            ["pair", "ckpt seed", *[f"cost @ CR {r:g}" for r in RATIOS], "CR 0.2 / CR 1"],
+            [[t["pair"], t["ckpt_seed"], *[f"{c:.2f}" for c in t["costs"]],
+              f"{t['ratio_02_10']:.2f}"] for t in table5])
     write_markdown(args.out.with_suffix(".md"), "Safe-CDT's levers", command, body)
     print(args.out.with_suffix(".md").read_text())
 
