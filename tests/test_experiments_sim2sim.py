@@ -99,3 +99,34 @@ def test_caster_ball_stats_rotate_the_spin_into_the_chassis_frame():
     assert s["lag1"] == pytest.approx(-1.0) and s["std_y"] < 1e-12 and s["std_z"] < 1e-12
     with pytest.raises(SystemExit, match="the caster ball is the Car's, got PointCircle1"):
         main(["--task", "PointCircle1"])
+
+
+def test_vase_fit_reads_the_native_side_and_restores_the_vase_rule(tmp_path, monkeypatch):
+    import json
+
+    import experiments.vase_fit as vase_fit
+    from safecdt_jax.envs import goal
+
+    rows = [{"task": "CarGoal1", "run_in": run_in, "deterministic": det}
+            for run_in in ("CarGoal1", "CarGoal2") for det in (True, False)]
+    path = tmp_path / "sim2sim.json"
+    path.write_text(json.dumps({"transfer": rows}))
+    found = vase_fit.native_rows(path, "CarGoal1")
+    assert {k: v["run_in"] for k, v in found.items()} == {True: "CarGoal2", False: "CarGoal2"}
+    with pytest.raises(SystemExit, match="no transfer rows of PointGoal1 in PointGoal2"):
+        vase_fit.native_rows(path, "PointGoal1")
+
+    # The rule is set while the episode is traced and put back afterwards, even on an error.
+    before = goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS
+    seen = []
+
+    def fake_policy(*args):
+        seen.append((goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS))
+        raise RuntimeError("stop")
+
+    monkeypatch.setattr(vase_fit, "ours_policy", fake_policy)
+    monkeypatch.setattr(vase_fit, "pick_expert", lambda task: 0)
+    with pytest.raises(RuntimeError, match="stop"):
+        vase_fit.run_fit("CarGoal1", 1.5, 2.0, 4, 0, True)
+    assert seen == [(1.5, 2.0)]
+    assert (goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS) == before
