@@ -73,6 +73,12 @@ def deploy_config(rule: str):
     return DeployConfig(lora_labels=labels, **field_overrides(changes, DeployConfig))
 
 
+def act_suffix(act: str) -> str:
+    """A sweep folder's suffix for an acting mode: none for "checkpoint" (the sweeps made before
+    `--act` existed keep their names), else "_" + the mode."""
+    return "" if act == "checkpoint" else f"_{act}"
+
+
 def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule: str,
           seeds: int, work: Path, act: str = "checkpoint") -> dict:
     """One deployment sweep's results record, from `work` or run and written there; `act`
@@ -82,8 +88,7 @@ def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule
     from safecdt_jax.deploy.job import run_deployment, write_results
     from safecdt_jax.pairs import parse_pair
 
-    mode = "" if act == "checkpoint" else f"_{act}"
-    out = work / "res" / f"{pair}_{edges}_s{seed}_{name}{mode}"
+    out = work / "res" / f"{pair}_{edges}_s{seed}_{name}{act_suffix(act)}"
     if not (out / "results.json").exists():
         res = run_deployment(checkpoint(pair, seed, edges, work), parse_pair(pair)[1], variants,
                              [BUDGET], seeds, seed=seed, cfg=deploy_config(rule),

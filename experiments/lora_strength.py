@@ -28,6 +28,7 @@ import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
 from experiments.cost_terms import checkpoints
+from experiments.levers import act_suffix
 from safecdt_jax.analysis.evaluate import ACTION_MODES, DEFAULT_ACTION_MODE
 from safecdt_jax.stats import per_seed_metrics, seed_spread
 
@@ -43,7 +44,7 @@ def sweep(pair: str, ckpts: list[Path], name: str, variants: list[str], seeds: i
     from safecdt_jax.deploy.job import run_deployment, write_results
     from safecdt_jax.pairs import parse_pair
 
-    out = work / f"{pair}_{name}{'' if act == 'checkpoint' else '_' + act}"
+    out = work / f"{pair}_{name}{act_suffix(act)}"
     if not (out / "results.json").exists():
         res = run_deployment(ckpts, parse_pair(pair)[1], variants, [BUDGET], seeds,
                              cfg=DeployConfig(**deploy),
