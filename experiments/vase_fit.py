@@ -4,16 +4,16 @@
         [--episodes 128] [--seeds 0,1] [--native experiments/results/sim2sim_physics7_cg.json]
         [--out experiments/results/vase_fit.json]
 
-Each fit is `RESTITUTION:CREEP_STEPS` of the disc vases (`envs.goal.VASE_RESTITUTION`, a pushed
-vase leaving at (1 + e) times the closing speed, and `VASE_CREEP_STEPS`, its slowest decay in
-env steps; today 0.5 and 2.5). For every fit and seed, the task's limit-25 expert (the snapshot
-`experiments.sim2sim.pick_expert` picks) runs `--episodes` episodes in the level-2 target, with
-its mean action and with samples, in our simulator only. The native side is read from a
-`sim2sim --parts transfer` result of the same expert (`--native`, which needs the peer venv to
-make): per cost term, cost steps per episode ours / native and their ratio native / ours; for
-the total cost, the ratio with its 95% bootstrap interval (`stats.ratio_interval`). Changes no
-default: a fit worth adopting is a new Goal rules version (`envs.TASK_VERSIONS`), which
-rebuilds the Goal data, checkpoints and report.
+Each fit is `RESTITUTION:CREEP_STEPS` of the disc vases for the task's robot
+(`envs.goal.VASE_PUSH`: a pushed vase leaves at (1 + e) times the closing speed, and n is its
+slowest decay in env steps; Goal rules 3: Car 1.5 and 2.0, Point 1.0 and 2.5). For every fit
+and seed, the task's limit-25 expert (the snapshot `experiments.sim2sim.pick_expert` picks)
+runs `--episodes` episodes in the level-2 target, with its mean action and with samples, in
+our simulator only. The native side is read from a `sim2sim --parts transfer` result of the
+same expert (`--native`, which needs the peer venv to make): per cost term, cost steps per
+episode ours / native and their ratio native / ours; for the total cost, the ratio with its
+95% bootstrap interval (`stats.ratio_interval`). Changes no default: a fit worth adopting is a
+new Goal rules version (`envs.TASK_VERSIONS`), which reruns the Goal deployments and reports.
 """
 
 from __future__ import annotations
@@ -49,13 +49,14 @@ def run_fit(task: str, restitution: float, creep: float, episodes: int, seed: in
     from safecdt_jax.envs import goal
     from safecdt_jax.experts.collect import snapshot_path
 
-    saved = goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS
-    goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS = restitution, creep
+    robot = "Car" if task.startswith("Car") else "Point"
+    saved = goal.VASE_PUSH[robot]
+    goal.VASE_PUSH[robot] = (restitution, creep)
     try:
         return ours_policy(task, snapshot_path(task), pick_expert(task), episodes, seed,
                            deterministic, target_task(task))
     finally:
-        goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS = saved
+        goal.VASE_PUSH[robot] = saved
 
 
 def main(argv: list[str] | None = None) -> None:

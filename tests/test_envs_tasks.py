@@ -11,10 +11,9 @@ from safecdt_jax.envs.geometry import pseudo_lidar
 from safecdt_jax.envs.goal import (
     GOAL_KEEPOUT,
     HAZARD_KEEPOUT,
-    VASE_CREEP_STEPS,
     VASE_KEEPOUT,
+    VASE_PUSH,
     VASE_RADIUS,
-    VASE_RESTITUTION,
     VASE_SPEED_COST,
 )
 from safecdt_jax.envs.robots import GRAVITY
@@ -164,12 +163,13 @@ def test_released_vase_slides_then_creeps_and_costs_while_above_the_threshold(na
     # that is the slower decay, then the soft-contact creep, exp(-1 / n) per step; it costs on
     # every step its speed is still >= 1e-4 m/s (Safety-Gymnasium's velocity threshold).
     env, params, s, _ = _reset(name)
+    creep_steps = VASE_PUSH[env.robot.name][1]
     far = s.data.qpos[:2] + jnp.array([1.0, 1.0]) * 3.0
     task = {**s.task, "vases": s.task["vases"].at[0].set(far),
             "vase_vel": s.task["vase_vel"].at[0].set(jnp.array([0.5, 0.0]))}
     speed, expected_speeds, costs = 0.5, [], []
     for _ in range(40):
-        speed = max(speed - GRAVITY * env.dt, speed * np.exp(-1 / VASE_CREEP_STEPS))
+        speed = max(speed - GRAVITY * env.dt, speed * np.exp(-1 / creep_steps))
         expected_speeds.append(speed)
         _, terms, _, task = env.task.step(jax.random.PRNGKey(0), params, env.robot, s.data,
                                           task, env.dt)
@@ -180,19 +180,25 @@ def test_released_vase_slides_then_creeps_and_costs_while_above_the_threshold(na
     assert float(terms["cost_vases_contact"]) == 0.0
 
 
-def test_robot_kicks_a_vase_ahead_at_one_plus_restitution_times_its_speed():
-    # A Point moving at 0.5 m/s along +x meets a vase just overlapping its front: the vase takes
-    # (1 + e) times the closing speed, then decays (Coulomb or creep, whichever is slower).
-    env, params, s, _ = _reset("PointGoal2")
-    xy = jnp.array([0.0, 0.0])
-    data = s.data.replace(qpos=jnp.array([0.0, 0.0, 0.0]), qvel=jnp.array([0.5, 0.0, 0.0]))
-    reach = env.robot.circles[0][2] + VASE_RADIUS  # body circle + vase disc, metres
-    task = {**s.task, "vases": s.task["vases"].at[0].set(xy + jnp.array([reach - 0.01, 0.0])),
+@pytest.mark.parametrize("name", ["CarGoal2", "PointGoal2"])
+def test_robot_kicks_a_vase_ahead_at_one_plus_restitution_times_its_speed(name):
+    # The robot, heading 0 and moving at 0.5 m/s along +x, meets a vase just overlapping its
+    # outline circle that reaches farthest along +x: the vase takes (1 + e) times the closing
+    # speed, then decays (Coulomb or creep, whichever is slower), with the robot's own (e, n).
+    env, params, s, _ = _reset(name)
+    restitution, creep_steps = VASE_PUSH[env.robot.name]
+    assert (restitution, creep_steps) == {"Car": (1.5, 2.0), "Point": (1.0, 2.5)}[env.robot.name]
+    qpos = s.data.qpos.at[:3].set(0.0)
+    data = s.data.replace(qpos=qpos, qvel=jnp.zeros_like(s.data.qvel).at[0].set(0.5))
+    circles = np.asarray(env.robot.circles)
+    front = circles[np.argmax(circles[:, 0] + circles[:, 2])]  # body frame = world frame here
+    centre = front[:2] + np.array([front[2] + VASE_RADIUS - 0.01, 0.0])  # 1 cm overlap
+    task = {**s.task, "vases": s.task["vases"].at[0].set(jnp.asarray(centre)),
             "vase_vel": jnp.zeros_like(s.task["vase_vel"])}
     _, terms, _, task = env.task.step(jax.random.PRNGKey(0), params, env.robot, data, task,
                                       env.dt)
-    kicked = (1 + VASE_RESTITUTION) * 0.5
-    speed = max(kicked - GRAVITY * env.dt, kicked * np.exp(-1 / VASE_CREEP_STEPS))
+    kicked = (1 + restitution) * 0.5
+    speed = max(kicked - GRAVITY * env.dt, kicked * np.exp(-1 / creep_steps))
     np.testing.assert_allclose(np.asarray(task["vase_vel"][0]), [speed, 0.0], atol=1e-5)
     assert float(terms["cost_vases_contact"]) == 1.0
     assert float(terms["cost_vases_velocity"]) == 1.0

@@ -117,16 +117,16 @@ def test_vase_fit_reads_the_native_side_and_restores_the_vase_rule(tmp_path, mon
         vase_fit.native_rows(path, "PointGoal1")
 
     # The rule is set while the episode is traced and put back afterwards, even on an error.
-    before = goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS
+    before = dict(goal.VASE_PUSH)
     seen = []
 
     def fake_policy(*args):
-        seen.append((goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS))
+        seen.append(dict(goal.VASE_PUSH))
         raise RuntimeError("stop")
 
     monkeypatch.setattr(vase_fit, "ours_policy", fake_policy)
     monkeypatch.setattr(vase_fit, "pick_expert", lambda task: 0)
     with pytest.raises(RuntimeError, match="stop"):
-        vase_fit.run_fit("CarGoal1", 1.5, 2.0, 4, 0, True)
-    assert seen == [(1.5, 2.0)]
-    assert (goal.VASE_RESTITUTION, goal.VASE_CREEP_STEPS) == before
+        vase_fit.run_fit("CarGoal1", 0.7, 3.0, 4, 0, True)
+    assert seen == [before | {"Car": (0.7, 3.0)}]  # the Car's rule only
+    assert goal.VASE_PUSH == before

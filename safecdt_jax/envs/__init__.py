@@ -42,8 +42,10 @@ from safecdt_jax.envs.types import MAX_HAZARDS, MAX_VASES, EnvParams, State  # n
 PHYSICS_VERSIONS = {"Car": 7, "Point": 2}
 # Per task: bump when a task's rules change (rewards, costs, objects). Goal 2: vases are knocked
 # ahead and creep to rest, and cost as in Safety-Gymnasium (2026-12-06; level 1's costs are
-# unchanged, so level-1 data and experts stay valid).
-TASK_VERSIONS = {"Goal": 2, "Circle": 1}
+# unchanged, so level-1 data and experts stay valid). Goal 3: the push constants per robot
+# (the Car's vase parts sooner, e 1.5 and creep 2 steps; the Point's e 1.0), fitted to native
+# per-term cost steps (2026-12-07; level 1's costs are again unchanged).
+TASK_VERSIONS = {"Goal": 3, "Circle": 1}
 
 NAMES = tuple(f"{robot}{task}{level}" for robot in ("Car", "Point") for task in ("Goal", "Circle")
               for level in (1, 2))
