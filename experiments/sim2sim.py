@@ -387,18 +387,28 @@ def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed:
                 deterministic: bool, run_in: str | None = None) -> dict[str, np.ndarray]:
     """Per-episode return, cost, goals and cost steps per term (`TERMS`, absent terms 0) of one
     snapshot of `task`'s experts, run in task `run_in` (default `task`)."""
+    act = expert_act(snapshot_file, index, deterministic)
+    return ours_episodes(run_in or task, lambda key, state: act(key, state.obs), episodes, seed)
+
+
+def ours_random(task: str, episodes: int, seed: int) -> dict[str, np.ndarray]:
+    """`ours_policy`'s statistics under uniform random actions in [-1, 1]^2, in `task`."""
+    from safecdt_jax.envs.rollout import uniform_policy
+
+    return ours_episodes(task, uniform_policy, episodes, seed)
+
+
+def ours_episodes(task: str, policy, episodes: int, seed: int) -> dict[str, np.ndarray]:
+    """Per-episode return, cost, goals and cost steps per term of `policy(key, state) -> action`
+    in our `task`, `episodes` episodes from `seed`'s keys, one jitted vmap."""
     import jax
     import jax.numpy as jnp
 
     from safecdt_jax import envs
     from safecdt_jax.envs.rollout import scan_episode
 
-    act = expert_act(snapshot_file, index, deterministic)
-    env, params = envs.make(run_in or task)
+    env, params = envs.make(task)
     zero = jnp.float32(0.0)
-
-    def policy(key, state):
-        return act(key, state.obs)
 
     def record(s):
         terms = jnp.stack([(s.info.get(k, zero) > 0).astype(jnp.float32) for k in TERMS])

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
-from experiments.sim2sim import TERMS, ours_policy, pick_expert, target_task
+from experiments.sim2sim import TERMS, native, ours_policy, ours_random, pick_expert, target_task
 from safecdt_jax.stats import ratio_interval
 
 
@@ -41,11 +41,25 @@ def native_rows(path: Path, task: str) -> dict[bool, dict]:
     return found
 
 
+ACTION = {True: "mean", False: "sampled", None: "random"}  # by `deterministic`
+
+
+def native_random(run_in: str, episodes: int) -> dict:
+    """Native `run_in` under uniform random actions, as a transfer row's native side (seed 0):
+    mean return and cost, per-episode costs, and per term the mean cost steps."""
+    t = native({"cmd": "policy", "task": run_in, "weights": None, "episodes": episodes,
+                "seed": 0, "deterministic": False})
+    return {"theirs_return": float(t["return"].mean()), "theirs_cost": float(t["cost"].mean()),
+            "theirs_costs": t["cost"].tolist(),
+            "terms": {k: {"theirs": float(t[k].mean())} for k in TERMS if k in t}}
+
+
 def run_fit(task: str, restitution: float, creep: float, episodes: int, seed: int,
-            deterministic: bool) -> dict[str, np.ndarray]:
-    """Per-episode return, cost and cost steps per term of the expert in the level-2 target
-    under one vase rule. The rule's constants are read when the episode is traced, so setting
-    them on the module before the (fresh) trace is what changes the simulation."""
+            deterministic: bool | None) -> dict[str, np.ndarray]:
+    """Per-episode return, cost and cost steps per term of the expert (`deterministic` None:
+    uniform random actions) in the level-2 target under one vase rule. The rule's constants are
+    read when the episode is traced, so setting them on the module before the (fresh) trace is
+    what changes the simulation."""
     from safecdt_jax.envs import goal
     from safecdt_jax.experts.collect import snapshot_path
 
@@ -53,6 +67,8 @@ def run_fit(task: str, restitution: float, creep: float, episodes: int, seed: in
     saved = goal.VASE_PUSH[robot]
     goal.VASE_PUSH[robot] = (restitution, creep)
     try:
+        if deterministic is None:
+            return ours_random(target_task(task), episodes, seed)
         return ours_policy(task, snapshot_path(task), pick_expert(task), episodes, seed,
                            deterministic, target_task(task))
     finally:
@@ -68,15 +84,19 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--native", type=Path,
                     default=Path("experiments/results/sim2sim_physics7_cg.json"))
     ap.add_argument("--out", type=Path, default=Path("experiments/results/vase_fit.json"))
+    ap.add_argument("--random-episodes", type=int, default=0,
+                    help="also uniform random actions, this many native episodes (0: none)")
     args = ap.parse_args(argv)
-    native = native_rows(args.native, args.task)
+    natives = native_rows(args.native, args.task)
+    if args.random_episodes:
+        natives[None] = native_random(target_task(args.task), args.random_episodes)
     rows = []
     for fit in args.fits.split(","):
         e, creep = (float(x) for x in fit.split(":"))
         for seed in (int(s) for s in args.seeds.split(",")):
-            for det in (True, False):
+            for det in natives:
                 ours = run_fit(args.task, e, creep, args.episodes, seed, det)
-                theirs = native[det]
+                theirs = natives[det]
                 ci = ratio_interval(np.asarray(theirs["theirs_costs"]), ours["cost"])
                 ratio = theirs["theirs_cost"] / float(ours["cost"].mean())
                 terms = {k: {"ours": float(ours[k].mean()),
@@ -88,7 +108,7 @@ def main(argv: list[str] | None = None) -> None:
                              "cost": float(ours["cost"].mean()),
                              "theirs_cost": theirs["theirs_cost"], "cost_ratio": ratio,
                              "cost_ratio_ci": list(ci), "terms": terms})
-                print(f"e {e:g} creep {creep:g} seed {seed} {'mean' if det else 'sampled'}: "
+                print(f"e {e:g} creep {creep:g} seed {seed} {ACTION[det]}: "
                       f"cost {rows[-1]['cost']:.1f} / {theirs['theirs_cost']:.1f}",
                       file=sys.stderr, flush=True)
     command = "python -m experiments.vase_fit " + " ".join(sys.argv[1:] if argv is None
@@ -103,14 +123,16 @@ def main(argv: list[str] | None = None) -> None:
         ["e", "creep (steps)", "seed", "action", "return ours / native",
          "cost ours / native (ratio, 95% CI)", *[short[k] for k in names]],
         [[f"{r['restitution']:g}", f"{r['creep_steps']:g}", r["seed"],
-          "mean" if r["deterministic"] else "sampled",
+          ACTION[r["deterministic"]],
           f"{r['return']:.1f} / {r['theirs_return']:.1f}",
           f"{r['cost']:.1f} / {r['theirs_cost']:.1f} ({r['cost_ratio']:.2f}, "
           f"{r['cost_ratio_ci'][0]:.2f}-{r['cost_ratio_ci'][1]:.2f})",
           *[fmt(r["terms"][k]["ours"], r["terms"][k]["theirs"]) for k in names]]
          for r in rows])
     body += ("\n\nCost steps per episode; ratios native / ours. The native side is one run per "
-             f"action mode from `{args.native}` (seed 0 of its own layouts).\n")
+             f"action mode from `{args.native}` (seed 0 of its own layouts)"
+             + (f"; random actions: {args.random_episodes} native episodes, run here"
+                if args.random_episodes else "") + ".\n")
     write_markdown(args.out.with_suffix(".md"), f"Vase push rules: {args.task}'s expert in "
                    f"{target_task(args.task)}", command, body)
     print(args.out.with_suffix(".md").read_text())

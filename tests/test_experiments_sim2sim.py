@@ -130,3 +130,24 @@ def test_vase_fit_reads_the_native_side_and_restores_the_vase_rule(tmp_path, mon
         vase_fit.run_fit("CarGoal1", 0.7, 3.0, 4, 0, True)
     assert seen == [before | {"Car": (0.7, 3.0)}]  # the Car's rule only
     assert goal.VASE_PUSH == before
+
+    # Random actions (deterministic None) run in the level-2 target under the fitted rule, and
+    # the native side of random actions is one `policy` request without weights.
+    monkeypatch.setattr(vase_fit, "ours_random", lambda task, episodes, seed: {
+        "task": task, "rule": goal.VASE_PUSH["Point"]})
+    assert vase_fit.run_fit("PointGoal1", 0.9, 2.0, 4, 0, None) == {
+        "task": "PointGoal2", "rule": (0.9, 2.0)}
+    assert goal.VASE_PUSH == before
+    requests = []
+
+    def fake_native(request):
+        requests.append(request)
+        return {"return": np.array([1.0, 3.0]), "cost": np.array([10.0, 20.0]),
+                "cost_hazards": np.array([2.0, 4.0])}
+
+    monkeypatch.setattr(vase_fit, "native", fake_native)
+    row = vase_fit.native_random("CarGoal2", 2)
+    assert requests == [{"cmd": "policy", "task": "CarGoal2", "weights": None, "episodes": 2,
+                         "seed": 0, "deterministic": False}]
+    assert row == {"theirs_return": 2.0, "theirs_cost": 15.0, "theirs_costs": [10.0, 20.0],
+                   "terms": {"cost_hazards": {"theirs": 3.0}}}

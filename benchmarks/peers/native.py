@@ -8,8 +8,9 @@ It imports only the peer's packages, never this project. Requests (JSON):
   random actions in [-1, 1]^2 (`actions` null) or the given open-loop script (from rest).
 - `{"cmd": "policy", "task": ..., "weights": "policy.npz", "episodes": 16, "seed": 0,
   "deterministic": true}`: an exported expert (a tanh MLP on normalised observations, see
-  `experiments.sim2sim.export_policy`); per-episode return, cost and goals, and per cost term
-  (`TERMS`, absent terms 0) the number of steps it was positive.
+  `experiments.sim2sim.export_policy`; `weights` null: uniform random actions); per-episode
+  return, cost and goals, and per cost term (`TERMS`, absent terms 0) the number of steps it
+  was positive.
 - `{"cmd": "contacts", "task": "CarGoal1", "actions": [[a0, a1], ...], "steps": 300,
   "start": 150, "seed": 0}`: per constant action (held from rest), the mean over steps
   `start`..`steps` of each ground contact's force on the car in the chassis frame (left wheel,
@@ -85,10 +86,14 @@ def _policy(weights: dict, deterministic: bool, rng):
 
 def policy(task: str, weights: str, episodes: int, seed: int, deterministic: bool) -> dict:
     """Per-episode return, cost (cost steps), goals reached and cost steps per term (`TERMS`) of
-    an exported expert."""
+    an exported expert (`weights`), or of uniform random actions (`weights` None)."""
     env, rng = make(task), np.random.default_rng(seed)
-    with np.load(weights) as z:
-        act = _policy(dict(z), deterministic, rng)
+    if weights is None:
+        def act(obs):
+            return rng.uniform(-1, 1, 2)
+    else:
+        with np.load(weights) as z:
+            act = _policy(dict(z), deterministic, rng)
     rets, costs, goals, terms = [], [], [], []
     for ep in range(episodes):
         obs, _ = env.reset(seed=seed + ep)
