@@ -387,8 +387,14 @@ def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed:
                 deterministic: bool, run_in: str | None = None) -> dict[str, np.ndarray]:
     """Per-episode return, cost, goals and cost steps per term (`TERMS`, absent terms 0) of one
     snapshot of `task`'s experts, run in task `run_in` (default `task`)."""
+    return ours_episodes(run_in or task, expert_policy(snapshot_file, index, deterministic),
+                         episodes, seed)
+
+
+def expert_policy(snapshot_file: Path, index: int, deterministic: bool):
+    """`expert_act` as an env policy, `policy(key, state) -> action`."""
     act = expert_act(snapshot_file, index, deterministic)
-    return ours_episodes(run_in or task, lambda key, state: act(key, state.obs), episodes, seed)
+    return lambda key, state: act(key, state.obs)
 
 
 def ours_random(task: str, episodes: int, seed: int) -> dict[str, np.ndarray]:
@@ -398,13 +404,17 @@ def ours_random(task: str, episodes: int, seed: int) -> dict[str, np.ndarray]:
     return ours_episodes(task, uniform_policy, episodes, seed)
 
 
-def ours_episodes(task: str, policy, episodes: int, seed: int) -> dict[str, np.ndarray]:
+def ours_episodes(task: str, policy, episodes: int, seed: int,
+                  shifts: list[dict[str, float]] | None = None) -> dict[str, np.ndarray]:
     """Per-episode return, cost, goals and cost steps per term of `policy(key, state) -> action`
-    in our `task`, `episodes` episodes from `seed`'s keys, one jitted vmap."""
+    in our `task`, `episodes` episodes from `seed`'s keys, one jitted vmap. With `shifts`
+    (`envs.dynamics` scales), every array gains a leading shift axis and each shift runs the
+    same keys (paired: the same layouts and policy noise under each dynamics)."""
     import jax
     import jax.numpy as jnp
 
     from safecdt_jax import envs
+    from safecdt_jax.envs.dynamics import apply_dynamics, stack_params
     from safecdt_jax.envs.rollout import scan_episode
 
     env, params = envs.make(task)
@@ -414,13 +424,17 @@ def ours_episodes(task: str, policy, episodes: int, seed: int) -> dict[str, np.n
         terms = jnp.stack([(s.info.get(k, zero) > 0).astype(jnp.float32) for k in TERMS])
         return s.reward, s.cost, s.info["goal_met"], terms
 
-    def episode(key):
+    def episode(params, key):
         _, (r, c, g, terms) = scan_episode(env, params, key, policy, record)
         return {"return": r.sum(), "cost": c.sum(), "goals": g.sum(),
                 **{k: terms[:, i].sum() for i, k in enumerate(TERMS)}}
 
     keys = jax.random.split(jax.random.PRNGKey(seed), episodes)
-    return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(episode))(keys).items()}
+    run = jax.vmap(episode, in_axes=(None, 0))
+    if shifts is not None:
+        params = stack_params([apply_dynamics(params, shift) for shift in shifts])
+        run = jax.vmap(run, in_axes=(0, None))
+    return {k: np.asarray(v) for k, v in jax.jit(run)(params, keys).items()}
 
 
 def transfer(task: str, episodes: int, limits: list[float] | None = None,

@@ -151,3 +151,15 @@ def test_vase_fit_reads_the_native_side_and_restores_the_vase_rule(tmp_path, mon
                          "seed": 0, "deterministic": False}]
     assert row == {"theirs_return": 2.0, "theirs_cost": 15.0, "theirs_costs": [10.0, 20.0],
                    "terms": {"cost_hazards": {"theirs": 3.0}}}
+
+
+def test_shift_sensitivity_moves_one_field_each_way_and_rejects_a_bad_scale():
+    from experiments.shift_sensitivity import shifts_of
+    from safecdt_jax.envs.dynamics import DYNAMICS_FIELDS
+
+    shifts = shifts_of(0.1)
+    assert shifts[0] == {} and len(shifts) == 1 + 2 * len(DYNAMICS_FIELDS)
+    assert {"gear_scale": 0.9} in shifts and {"mass_scale": 1.1} in shifts
+    assert all(len(s) == 1 for s in shifts[1:])
+    with pytest.raises(SystemExit, match="--scale must lie in"):
+        shifts_of(1.5)
