@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from safecdt_jax import envs
 from safecdt_jax.paper import PaperPlan, experiments, quick_plan, run_paper
 from safecdt_jax.paper import tables as T
 from safecdt_jax.paper.report import claims
@@ -191,6 +192,23 @@ TINY = dict(pairs=("PC1-PC2",), study_pair="PC1-PC2", preset="tiny", horizon=10,
             ctg_ratios=(0.2, 1.0), main_seeds=2)
 
 
+def test_cached_baselines_match_only_on_the_env_version_they_were_evaluated_on(tmp_path):
+    from safecdt_jax.paper.run import _matching_baselines
+
+    spec = {"pair": "CG1-CG2", "seeds": 3, "episodes": 20, "budget": 30.0, "preset": "cpu",
+            "algos": ["cpq"], "data": "recipe-x", "env": envs.env_version("CarGoal2")}
+    saved = {"pair": "CG1-CG2", "seeds": 3, "episodes": 20, "budget": 30.0, "preset": "cpu",
+             "stop_over_budget": True, "methods": [{"algo": "cpq"}],
+             "data": {"recipe": "recipe-x"}, "target_env": spec["env"]}
+    path = tmp_path / "baselines.json"
+    path.write_text(json.dumps(saved))
+    assert _matching_baselines(tmp_path, spec) == saved
+    for env in ("Car7-Goal2", None):  # evaluated on older rules, or before the check
+        path.write_text(json.dumps({k: v for k, v in saved.items() if k != "target_env"}
+                                   | ({"target_env": env} if env else {})))
+        assert _matching_baselines(tmp_path, spec) is None
+
+
 def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, monkeypatch):
     from safecdt_jax.pretrain import default_pretrain, pretrain
 
@@ -211,7 +229,8 @@ def test_run_paper_end_to_end_resume_and_cached_baselines(tiny_run, tmp_path, mo
                           "vr_std": 47.1, "seeds": 3}}
     saved = {"pair": "PC1-PC2", "seeds": 3, "episodes": 20, "budget": 3.0, "preset": "cpu",
              "stop_over_budget": True, "methods": [method],
-             "data": {"fingerprint": checkpoint_identity(ckpt)["data"]}}
+             "data": {"fingerprint": checkpoint_identity(ckpt)["data"]},
+             "target_env": envs.env_version("PointCircle2")}
     (folder / "baselines.json").write_text(json.dumps(saved))
     out = tmp_path / "report"
     logs: list[str] = []

@@ -77,6 +77,7 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
     returns them. `steps` overrides the preset's updates (Q-learning) or BC's steps.
     Checkpoints go to `ckpt_dir/<algo>` (default `out/ckpt`) and are reused when config, data
     and seeds match."""
+    from safecdt_jax.envs import env_version
     from safecdt_jax.experts.collect import ensure_source_data
     from safecdt_jax.pairs import parse_pair
     from safecdt_jax.pretrain.run import dataset_record
@@ -118,8 +119,8 @@ def run_baselines(pair: str, algos: Sequence[str], seeds: int, budget: float = 3
             print(f"{LABELS[algo]}: reward {s['mean_return_mean']:.2f}, cost "
                   f"{s['mean_cost_mean']:.2f}, VR {s['vr_mean']:.1f}%", flush=True)
     results = {"format": RESULTS_FORMAT, "pair": pair, "source": source, "target": target,
-               "budget": budget, "seeds": seeds, "episodes": episodes, "preset": preset_name,
-               "stop_over_budget": stop_over_budget,
+               "target_env": env_version(target), "budget": budget, "seeds": seeds,
+               "episodes": episodes, "preset": preset_name, "stop_over_budget": stop_over_budget,
                "data": record, "versions": versions(),
                "created": time.strftime("%Y-%m-%d %H:%M:%S"), "methods": methods}
     write_baselines(out, results)

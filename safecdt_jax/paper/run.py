@@ -218,7 +218,8 @@ def baselines_folder(pair: str, preset: str) -> Path:
 
 def _matching_baselines(folder: Path, spec: Mapping[str, Any]) -> dict[str, Any] | None:
     """The `baselines.json` in `folder` if it was made with the spec's settings and data (its
-    recipe, or its fingerprint for data without one)."""
+    recipe, or its fingerprint for data without one) and evaluated on the spec's target env
+    version (a file without one predates the check and is evaluated again)."""
     path = folder / "baselines.json"
     if not path.is_file():
         return None
@@ -228,6 +229,7 @@ def _matching_baselines(folder: Path, spec: Mapping[str, Any]) -> dict[str, Any]
             and float(saved.get("budget", -1)) == spec["budget"]
             and saved.get("preset") == spec["preset"]
             and saved.get("stop_over_budget") is True
+            and saved.get("target_env") == spec["env"]
             and [m["algo"] for m in saved.get("methods", [])] == spec["algos"]
             and spec["data"] in (saved.get("data", {}).get("recipe"),
                                  saved.get("data", {}).get("fingerprint")))
