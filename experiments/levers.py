@@ -20,7 +20,8 @@ Per (pair, rule, variant) the table gives the mean over checkpoints x seeds of V
 over episodes 41-50 and the drift (episodes 41-50 minus 1-10), each with its spread across
 pretraining seeds (std of the checkpoints' means) and across deployment seeds (mean of the
 checkpoints' seed stds). Every sweep's results.json (and `--edges data`'s checkpoints) live
-under `--work` (default `runs/levers`) and are reused, so an interrupted run continues.
+under `--work` (default `runs/levers`) and are reused on the same env version (`envs.env_version`;
+a record of older physics or task rules runs again), so an interrupted run continues.
 """
 
 from __future__ import annotations
@@ -79,6 +80,18 @@ def act_suffix(act: str) -> str:
     return "" if act == "checkpoint" else f"_{act}"
 
 
+def reusable(out: Path, target: str) -> dict | None:
+    """The sweep record in `out` if one was made on `target`'s current env version (a record of
+    older physics or task rules is run again), else None."""
+    from safecdt_jax.envs import env_version
+
+    path = out / "results.json"
+    if not path.exists():
+        return None
+    record = json.loads(path.read_text())
+    return record if record.get("target_env") == env_version(target) else None
+
+
 def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule: str,
           seeds: int, work: Path, act: str = "checkpoint") -> dict:
     """One deployment sweep's results record, from `work` or run and written there; `act`
@@ -89,12 +102,14 @@ def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule
     from safecdt_jax.pairs import parse_pair
 
     out = work / "res" / f"{pair}_{edges}_s{seed}_{name}{act_suffix(act)}"
-    if not (out / "results.json").exists():
+    record = reusable(out, parse_pair(pair)[1])
+    if record is None:
         res = run_deployment(checkpoint(pair, seed, edges, work), parse_pair(pair)[1], variants,
                              [BUDGET], seeds, seed=seed, cfg=deploy_config(rule),
                              stochastic_actions=parse_action_mode(act), progress=False)
         write_results(out, res, f"levers {pair} {edges} seed {seed} {name}")
-    return json.loads((out / "results.json").read_text())
+        record = json.loads((out / "results.json").read_text())
+    return record
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -28,7 +28,7 @@ import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
 from experiments.cost_terms import checkpoints
-from experiments.levers import act_suffix
+from experiments.levers import act_suffix, reusable
 from safecdt_jax.analysis.evaluate import ACTION_MODES, DEFAULT_ACTION_MODE
 from safecdt_jax.stats import per_seed_metrics, seed_spread
 
@@ -45,12 +45,14 @@ def sweep(pair: str, ckpts: list[Path], name: str, variants: list[str], seeds: i
     from safecdt_jax.pairs import parse_pair
 
     out = work / f"{pair}_{name}{act_suffix(act)}"
-    if not (out / "results.json").exists():
+    record = reusable(out, parse_pair(pair)[1])
+    if record is None:
         res = run_deployment(ckpts, parse_pair(pair)[1], variants, [BUDGET], seeds,
                              cfg=DeployConfig(**deploy),
                              stochastic_actions=parse_action_mode(act), progress=False)
         write_results(out, res, f"lora_strength {pair} {name}")
-    return json.loads((out / "results.json").read_text())
+        record = json.loads((out / "results.json").read_text())
+    return record
 
 
 def per_checkpoint(run: dict, n_ckpt: int) -> dict[str, list[np.ndarray]]:

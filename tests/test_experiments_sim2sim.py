@@ -163,3 +163,16 @@ def test_shift_sensitivity_moves_one_field_each_way_and_rejects_a_bad_scale():
     assert all(len(s) == 1 for s in shifts[1:])
     with pytest.raises(SystemExit, match="--scale must lie in"):
         shifts_of(1.5)
+
+
+def test_levers_reuse_a_sweep_only_on_the_env_version_it_ran_on(tmp_path):
+    import json
+
+    from experiments.levers import reusable
+
+    assert reusable(tmp_path, "CarGoal2") is None  # nothing there yet
+    record = {"target_env": envs.env_version("CarGoal2"), "runs": []}
+    (tmp_path / "results.json").write_text(json.dumps(record))
+    assert reusable(tmp_path, "CarGoal2") == record
+    (tmp_path / "results.json").write_text(json.dumps(record | {"target_env": "Car7-Goal2"}))
+    assert reusable(tmp_path, "CarGoal2") is None  # older task rules: run again

@@ -26,9 +26,9 @@ VASE_SPEED_COST = 1e-4  # m/s: a vase moving at least this fast costs (level 2)
 # stands for how soon the robot's body and the box part, which a disc pushed by circles cannot
 # model: the Car's box chassis and bumpers shed a vase sooner than the Point's sphere. Fitted to
 # native cost steps per term (contact, velocity) of each robot's limit-25 Goal1 expert in its
-# level-2 task (experiments.vase_fit, 2026-12-07: ratios native / ours 0.93-0.96 contact and
-# 0.94-1.08 velocity for the Car; 0.97-1.48 and 0.96-1.34 for the Point). e > 1 is not a
-# physical coefficient: the box also tips and spins, which a disc cannot.
+# level-2 task (experiments.vase_fit and sim2sim, 2026-12-07: ratios native / ours, mean action
+# and sampled, 0.94 / 0.93 contact and 0.92 / 1.04 velocity for the Car; 0.97-1.48 and 0.96-1.34
+# for the Point). e > 1 is not a physical coefficient: the box also tips and spins.
 VASE_PUSH = {"Car": (1.5, 2.0), "Point": (1.0, 2.5)}  # robot name -> (e, n env steps)
 LIDAR_RANGE = 3.0  # m
 GOAL_BONUS = 1.0
