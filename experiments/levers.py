@@ -92,24 +92,34 @@ def reusable(out: Path, target: str) -> dict | None:
     return record if record.get("target_env") == env_version(target) else None
 
 
+def cached_sweep(out: Path, target: str, run, title: str) -> dict:
+    """The sweep record in `out` (`reusable`), or `run()`'s deployment result written there
+    under `title` and read back."""
+    from safecdt_jax.deploy.job import write_results
+
+    record = reusable(out, target)
+    if record is None:
+        write_results(out, run(), title)
+        record = reusable(out, target)
+    return record
+
+
 def sweep(pair: str, seed: int, edges: str, name: str, variants: list[str], rule: str,
           seeds: int, work: Path, act: str = "checkpoint") -> dict:
     """One deployment sweep's results record, from `work` or run and written there; `act`
     picks how the CDT acts (`analysis.evaluate.ACTION_MODES`: the checkpoint's own mode, its
     mean or samples)."""
     from safecdt_jax.analysis.evaluate import parse_action_mode
-    from safecdt_jax.deploy.job import run_deployment, write_results
+    from safecdt_jax.deploy.job import run_deployment
     from safecdt_jax.pairs import parse_pair
 
-    out = work / "res" / f"{pair}_{edges}_s{seed}_{name}{act_suffix(act)}"
-    record = reusable(out, parse_pair(pair)[1])
-    if record is None:
-        res = run_deployment(checkpoint(pair, seed, edges, work), parse_pair(pair)[1], variants,
-                             [BUDGET], seeds, seed=seed, cfg=deploy_config(rule),
-                             stochastic_actions=parse_action_mode(act), progress=False)
-        write_results(out, res, f"levers {pair} {edges} seed {seed} {name}")
-        record = json.loads((out / "results.json").read_text())
-    return record
+    target = parse_pair(pair)[1]
+    return cached_sweep(
+        work / "res" / f"{pair}_{edges}_s{seed}_{name}{act_suffix(act)}", target,
+        lambda: run_deployment(checkpoint(pair, seed, edges, work), target, variants, [BUDGET],
+                               seeds, seed=seed, cfg=deploy_config(rule),
+                               stochastic_actions=parse_action_mode(act), progress=False),
+        f"levers {pair} {edges} seed {seed} {name}")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -14,13 +14,12 @@ mean over checkpoints x seeds with the spread between checkpoints / across seeds
 how every run acts (`analysis.evaluate.ACTION_MODES`; default samples, as every command; the
 sweeps of research section 24 acted as the checkpoint says, with the mean, and are cached under
 names without a suffix). Every sweep's results.json lives under `--work` (default
-`runs/lora_strength`) and is reused.
+`runs/lora_strength`) and is reused on the same env version (`experiments.levers.reusable`).
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -28,7 +27,7 @@ import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
 from experiments.cost_terms import checkpoints
-from experiments.levers import act_suffix, reusable
+from experiments.levers import act_suffix, cached_sweep
 from safecdt_jax.analysis.evaluate import ACTION_MODES, DEFAULT_ACTION_MODE
 from safecdt_jax.stats import per_seed_metrics, seed_spread
 
@@ -41,18 +40,16 @@ def sweep(pair: str, ckpts: list[Path], name: str, variants: list[str], seeds: i
     how the CDT acts (an `analysis.evaluate.ACTION_MODES` name)."""
     from safecdt_jax.analysis.evaluate import parse_action_mode
     from safecdt_jax.deploy.config import DeployConfig
-    from safecdt_jax.deploy.job import run_deployment, write_results
+    from safecdt_jax.deploy.job import run_deployment
     from safecdt_jax.pairs import parse_pair
 
-    out = work / f"{pair}_{name}{act_suffix(act)}"
-    record = reusable(out, parse_pair(pair)[1])
-    if record is None:
-        res = run_deployment(ckpts, parse_pair(pair)[1], variants, [BUDGET], seeds,
-                             cfg=DeployConfig(**deploy),
-                             stochastic_actions=parse_action_mode(act), progress=False)
-        write_results(out, res, f"lora_strength {pair} {name}")
-        record = json.loads((out / "results.json").read_text())
-    return record
+    target = parse_pair(pair)[1]
+    return cached_sweep(
+        work / f"{pair}_{name}{act_suffix(act)}", target,
+        lambda: run_deployment(ckpts, target, variants, [BUDGET], seeds,
+                               cfg=DeployConfig(**deploy),
+                               stochastic_actions=parse_action_mode(act), progress=False),
+        f"lora_strength {pair} {name}")
 
 
 def per_checkpoint(run: dict, n_ckpt: int) -> dict[str, list[np.ndarray]]:

@@ -60,10 +60,11 @@ def run_fit(task: str, restitution: float, creep: float, episodes: int, seed: in
     uniform random actions) in the level-2 target under one vase rule. The rule's constants are
     read when the episode is traced, so setting them on the module before the (fresh) trace is
     what changes the simulation."""
+    from safecdt_jax import envs
     from safecdt_jax.envs import goal
     from safecdt_jax.experts.collect import snapshot_path
 
-    robot = "Car" if task.startswith("Car") else "Point"
+    robot = envs.make(task)[0].robot.name
     saved = goal.VASE_PUSH[robot]
     goal.VASE_PUSH[robot] = (restitution, creep)
     try:

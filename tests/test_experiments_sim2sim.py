@@ -176,3 +176,28 @@ def test_levers_reuse_a_sweep_only_on_the_env_version_it_ran_on(tmp_path):
     assert reusable(tmp_path, "CarGoal2") == record
     (tmp_path / "results.json").write_text(json.dumps(record | {"target_env": "Car7-Goal2"}))
     assert reusable(tmp_path, "CarGoal2") is None  # older task rules: run again
+
+
+def test_cached_sweep_runs_once_per_env_version(tmp_path, monkeypatch):
+    import json
+
+    import safecdt_jax.deploy.job as job
+    from experiments.levers import cached_sweep
+
+    runs = []
+
+    def fake_write(out, result, title):
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "results.json").write_text(json.dumps(result | {"title": title}))
+
+    def run():
+        runs.append(1)
+        return {"target_env": envs.env_version("CarGoal2"), "n": len(runs)}
+
+    monkeypatch.setattr(job, "write_results", fake_write)
+    first = cached_sweep(tmp_path / "s", "CarGoal2", run, "t")
+    assert first["n"] == 1 and first["title"] == "t"
+    assert cached_sweep(tmp_path / "s", "CarGoal2", run, "t") == first and len(runs) == 1
+    stale = json.loads((tmp_path / "s" / "results.json").read_text()) | {"target_env": "old"}
+    (tmp_path / "s" / "results.json").write_text(json.dumps(stale))
+    assert cached_sweep(tmp_path / "s", "CarGoal2", run, "t")["n"] == 2  # run again
