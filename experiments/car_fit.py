@@ -20,6 +20,13 @@ the low-torque speeds `LOW_WEIGHT` times; the random-action row is reported but 
 unless `--random-weight W` > 0 weights its speed (fitting it costs the Circle:
 docs/research/environment-fidelity.md). Writes JSON and markdown (default
 `experiments/results/car_fit.{json,md}`).
+
+`--plus-y` adds the other travel direction: every turning script negated (positive torques
+drive toward body -y, where the targets above all drive; an expert may prefer +y, as the
+CarGoal1 one does) and `drive_stats.recovery_scripts`' four turns and recoveries (onset peak,
+turn and leftover yaw rates, regained speed), native over 8 layouts. `--cone pyramidal` fits
+`CarRobot.friction_cone = "pyramidal"`, whose forces depend on the heading: ours then runs
+every script from each of `HEADINGS` and averages, as native's layouts average over theirs.
 """
 
 from __future__ import annotations
@@ -49,28 +56,46 @@ LOW_TORQUES = (0.01, 0.005)
 SWITCH_WEIGHT = 3.0
 LOW_WEIGHT = 3.0  # the held low-torque drives' speeds: two numbers stand for a whole regime
 LOW_KEYS = frozenset(f"({level}, {level})" for level in LOW_TORQUES)
+HEADINGS = (0.35, 1.05)  # rad: our starting yaws when the cone is pyramidal (20 and 60 deg)
+PLUS_Y = " toward +y"
 
 
 @functools.cache
-def scripts() -> tuple[tuple[str, np.ndarray], ...]:
+def scripts(plus_y: bool = False) -> tuple[tuple[str, np.ndarray], ...]:
     """`sim2sim.turning`'s action scripts [STEPS, 2], the `LOW_TORQUES` held on both wheels,
-    then uniform random actions in [-1, 1]^2 (their own generator, seed 1). Cached: every
-    candidate's `metrics` reads their names."""
+    with `plus_y` every turning script negated (named `PLUS_Y`) and the recovery scripts
+    (padded with their last action), then uniform random actions in [-1, 1]^2 (their own
+    generator, seed 1). Cached: every candidate's `metrics` reads their names."""
+    from experiments.drive_stats import recovery_scripts
     from experiments.sim2sim import turn_scripts
 
-    out = [(name, acts.astype(np.float32)) for name, acts in turn_scripts(STEPS)]
+    turns = [(name, acts.astype(np.float32)) for name, acts in turn_scripts(STEPS)]
+    out = list(turns)
     for level in LOW_TORQUES:
         out.append((f"({level}, {level})", np.full((STEPS, 2), level, np.float32)))
+    if plus_y:
+        out += [(name + PLUS_Y, -acts) for name, acts in turns]
+        out += [(f"recovery: {name}", np.pad(acts, ((0, STEPS - len(acts)), (0, 0)),
+                                             mode="edge").astype(np.float32))
+                for name, acts in recovery_scripts()]
     uniform = np.random.default_rng(1).uniform(-1.0, 1.0, (STEPS, 2))
     return (*out, ("random", uniform.astype(np.float32)))
 
 
-def metrics(speed: np.ndarray, yaw: np.ndarray) -> dict[str, list[float]]:
+def metrics(speed: np.ndarray, yaw: np.ndarray, plus_y: bool = False) -> dict[str, list[float]]:
     """Per script [n_scripts + 1, STEPS] of forward speed and yaw rate (the last row: the
-    `SWITCHES` script): the turning table's means and the two speed-up curves."""
-    names = [name for name, _ in scripts()]
-    out = {name: [float(speed[i, 100:].mean()), float(yaw[i, 100:].mean())]
-           for i, name in enumerate(names)}
+    `SWITCHES` script): the turning table's means and the two speed-up curves; a recovery
+    script's onset peak, turn and leftover yaw rates (signed by the turn) and regained speed
+    (`drive_stats.recovery`)."""
+    names = [name for name, _ in scripts(plus_y)]
+    out = {}
+    for i, name in enumerate(names):
+        if name.startswith("recovery: "):
+            y = np.sign(yaw[i, 120:130].mean()) * yaw[i]
+            out[name] = [float(y[100:110].max()), float(y[120:130].mean()),
+                         float(y[135:195].mean()), float(np.abs(speed[i, 130:160]).mean())]
+        else:
+            out[name] = [float(speed[i, 100:].mean()), float(yaw[i, 100:].mean())]
     out["random"][1] = float(np.abs(yaw[names.index("random"), 100:]).mean())  # mean |yaw|
     out["from rest"] = speed[-1, 2:12].tolist()
     out["after a spin"] = speed[-1, 60:72].tolist()
@@ -95,26 +120,29 @@ def loss(ours: dict, native: dict, random_weight: float = 0.0) -> float:
 
 
 @functools.cache
-def native_metrics() -> dict[str, list[float]]:
+def native_metrics(plus_y: bool = False) -> dict[str, list[float]]:
     """`metrics` of native Safety-Gymnasium's car (CarCircle1, cached native traces); read
-    it, do not change it (one dict per process)."""
+    it, do not change it (one dict per process). The original scripts over 4 layouts, the
+    `plus_y` ones over 8 (native's car drifts with its heading there)."""
     from experiments.car_slide import SWITCHES
     from experiments.sim2sim import native
 
     rows = []
-    for episodes, acts in [*((4, a.tolist()) for _, a in scripts()), (8, SWITCHES)]:
+    runs = [(4 if n in dict(scripts()) else 8, a.tolist()) for n, a in scripts(plus_y)]
+    for episodes, acts in [*runs, (8, SWITCHES)]:
         obs = native({"cmd": "trace", "task": "CarCircle1", "episodes": episodes,
                       "steps": len(acts), "seed": 0, "actions": acts})["obs"]
         rows.append(np.pad(obs.mean(0), ((0, STEPS - len(acts)), (0, 0))))
     obs = np.stack(rows)
-    return metrics(-obs[..., 4], obs[..., 8])
+    return metrics(-obs[..., 4], obs[..., 8], plus_y)
 
 
 @functools.cache
-def _program(power: float | None):
+def _program(power: float | None, cone: str = "elliptic", plus_y: bool = False):
     """Jitted `thetas [n, len(FIELDS) (+ 1)] -> (speed, yaw) [n, scripts + 1, STEPS]`: our
     bare Car from rest under every script, one candidate set of `FIELDS` per row (and its
-    `saturation_power` in a last column when `power` is None)."""
+    `saturation_power` in a last column when `power` is None), friction cone `cone`; a
+    pyramidal cone's runs start from each of `HEADINGS` and are averaged."""
     import jax
     import jax.numpy as jnp
     from mujoco import mjx
@@ -126,10 +154,12 @@ def _program(power: float | None):
 
     model, params = mjx.put_model(CAR.mj_model), EnvParams()
     switches = np.pad(np.asarray(SWITCHES, np.float32), ((0, STEPS - len(SWITCHES)), (0, 0)))
-    acts = jnp.asarray(np.stack([*(a for _, a in scripts()), switches]))
+    acts = jnp.asarray(np.stack([*(a for _, a in scripts(plus_y)), switches]))
+    headings = jnp.asarray(HEADINGS if cone == "pyramidal" else (0.0,), jnp.float32)
 
-    def run(theta, script):
+    def run(theta, script, heading):
         car = dataclasses.replace(CAR, saturation_power=theta[-1] if power is None else power,
+                                  friction_cone=cone,
                                   **{f: theta[i] for i, f in enumerate(FIELDS)})
 
         def step(carry, action):
@@ -138,21 +168,27 @@ def _program(power: float | None):
             v = rot2(data.qpos[2]).T @ data.qvel[:2]
             return (data, state), jnp.stack([-v[1], data.qvel[2]])
 
-        start = (car.init_data(model, jnp.zeros(2), jnp.float32(0.0)), car.init_state())
+        start = (car.init_data(model, jnp.zeros(2), heading), car.init_state())
         return jax.lax.scan(step, start, script)[1]
 
-    return jax.jit(jax.vmap(lambda th: jax.vmap(lambda s: run(th, s))(acts)))
+    def candidate(theta):
+        per_heading = jax.vmap(lambda h: jax.vmap(lambda s: run(theta, s, h))(acts))(headings)
+        return per_heading.mean(0)
+
+    return jax.jit(jax.vmap(candidate))
 
 
-def evaluate(thetas: np.ndarray, power: float | None) -> list[dict]:
+def evaluate(thetas: np.ndarray, power: float | None, cone: str = "elliptic",
+             plus_y: bool = False) -> list[dict]:
     """`metrics` of each candidate row of `thetas` [n, len(FIELDS)] (power None: the last
-    of len(FIELDS) + 1 columns is each row's `saturation_power`)."""
-    out = np.asarray(_program(power)(thetas.astype(np.float32)))
-    return [metrics(o[..., 0], o[..., 1]) for o in out]
+    of len(FIELDS) + 1 columns is each row's `saturation_power`) under friction cone `cone`."""
+    out = np.asarray(_program(power, cone, plus_y)(thetas.astype(np.float32)))
+    return [metrics(o[..., 0], o[..., 1], plus_y) for o in out]
 
 
 def fit(power: float | None, rounds: int, start: dict[str, float] | None = None,
-        random_weight: float = 0.0, seed: int = 0, size: int = 48, elite: int = 10):
+        random_weight: float = 0.0, seed: int = 0, size: int = 48, elite: int = 10,
+        cone: str = "elliptic", plus_y: bool = False):
     """Cross-entropy search from the `CarRobot` defaults updated by `start` (power None: the
     `saturation_power` is searched too); returns (best constants, its loss, the defaults' loss,
     the best loss after each round)."""
@@ -160,7 +196,7 @@ def fit(power: float | None, rounds: int, start: dict[str, float] | None = None,
 
     names = FIELDS if power is not None else (*FIELDS, "saturation_power")
     bounds = BOUNDS | {"saturation_power": (1.0, 20.0)}
-    target = native_metrics()
+    target = native_metrics(plus_y)
     defaults = np.array([getattr(CAR, f) for f in FIELDS])
     # a searched power starts from the defaults' own, or from 2 where they clip (n = 0)
     start = {"saturation_power": CAR.saturation_power or 2.0} | (start or {})
@@ -172,13 +208,15 @@ def fit(power: float | None, rounds: int, start: dict[str, float] | None = None,
     for _ in range(rounds):
         thetas = np.clip(np.exp(mean + std * rng.standard_normal((size, len(names)))), lo, hi)
         thetas[0] = np.exp(mean)
-        losses = np.array([loss(m, target, random_weight) for m in evaluate(thetas, power)])
+        losses = np.array([loss(m, target, random_weight)
+                           for m in evaluate(thetas, power, cone, plus_y)])
         top = np.log(thetas[np.argsort(losses)[:elite]])
         mean, std = top.mean(0), np.maximum(top.std(0), 0.03)
         if losses.min() < best[0]:
             best = (float(losses.min()), thetas[np.argmin(losses)])
         history.append(best[0])
-    default = loss(evaluate(defaults[None], CAR.saturation_power)[0], target, random_weight)
+    default = loss(evaluate(defaults[None], CAR.saturation_power, CAR.friction_cone, plus_y)[0],
+                   target, random_weight)
     return dict(zip(names, best[1].round(4).tolist(), strict=True)), best[0], default, history
 
 
@@ -191,6 +229,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--random-weight", type=float, default=0.0)
     ap.add_argument("--start", action="append", default=[], metavar="FIELD=VALUE",
                     help="a starting value of one of FIELDS (repeatable)")
+    ap.add_argument("--cone", choices=("elliptic", "pyramidal"), default="elliptic",
+                    help="the fitted Car's CarRobot.friction_cone")
+    ap.add_argument("--plus-y", action="store_true",
+                    help="add the scripts driving toward +y and the turn recoveries")
     ap.add_argument("--out", type=Path, default=Path("experiments/results/car_fit.json"))
     args = ap.parse_args(argv)
     from safecdt_jax.envs.robots import CAR
@@ -203,15 +245,19 @@ def main(argv: list[str] | None = None) -> None:
     if args.fit_power:
         start.setdefault("saturation_power", args.saturation_power)
     power = None if args.fit_power else args.saturation_power
-    best, best_loss, default_loss, history = fit(power, args.rounds, start, args.random_weight)
+    cone, plus_y = args.cone, args.plus_y
+    best, best_loss, default_loss, history = fit(power, args.rounds, start, args.random_weight,
+                                                 cone=cone, plus_y=plus_y)
     power = best.get("saturation_power", args.saturation_power)
-    target = native_metrics()
-    physics_5 = evaluate(np.array([[PHYSICS_5[f] for f in FIELDS]]), 0.0)[0]
-    before = evaluate(np.array([[getattr(CAR, f) for f in FIELDS]]), CAR.saturation_power)[0]
-    after = evaluate(np.array([[best[f] for f in FIELDS]]), power)[0]
+    target = native_metrics(plus_y)
+    physics_5 = evaluate(np.array([[PHYSICS_5[f] for f in FIELDS]]), 0.0, "elliptic", plus_y)[0]
+    before = evaluate(np.array([[getattr(CAR, f) for f in FIELDS]]), CAR.saturation_power,
+                      CAR.friction_cone, plus_y)[0]
+    after = evaluate(np.array([[best[f] for f in FIELDS]]), power, cone, plus_y)[0]
     command = "python -m experiments.car_fit " + " ".join(sys.argv[1:] if argv is None else argv)
     write_json(args.out, {"command": command, "machine": machine(),
-                          "saturation_power": power, "start": start,
+                          "saturation_power": power, "start": start, "cone": cone,
+                          "plus_y": plus_y,
                           "random_weight": args.random_weight,
                           "constants": best,
                           "loss": best_loss, "default_loss": default_loss, "history": history,
@@ -222,7 +268,7 @@ def main(argv: list[str] | None = None) -> None:
     body = (f"Loss (RMS, switching yaw x{SWITCH_WEIGHT:g}, low torque x{LOW_WEIGHT:g}, "
             f"random drift x{args.random_weight:g}): physics 5 "
             f"{loss(physics_5, target, args.random_weight):.4f}, the defaults {default_loss:.4f}, "
-            f"fitted {best_loss:.4f}.\n\nFitted constants (saturation_power "
+            f"fitted {best_loss:.4f}.\n\nFitted constants ({cone} cone, saturation_power "
             f"{power:g}): " + ", ".join(f"`{k}={v:g}`" for k, v in best.items())
             + "\n\n" + markdown_table(["script (speed m/s, yaw rad/s)", "physics 5",
                                        "defaults", "fitted", "native"], rows))

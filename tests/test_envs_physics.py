@@ -8,6 +8,7 @@ import pytest
 from env_helpers import hold
 
 from safecdt_jax import envs
+from safecdt_jax.envs.geometry import rot2
 from safecdt_jax.envs.robots import CAR, POINT, planar_sensors
 from safecdt_jax.envs.rollout import uniform_policy
 
@@ -262,3 +263,46 @@ def test_chassis_chatter_follows_the_drive_level():
     assert np.mean(full[:, 2]) == pytest.approx(9.81, abs=0.8)
     np.testing.assert_allclose(idle[:, 2], 9.81, atol=1e-5)
     assert np.std(full[:, 6]) == pytest.approx(0.45, rel=0.15)
+
+
+def test_the_friction_pyramid_passes_small_forces_and_caps_a_diamond_in_floor_axes():
+    """`pyramid_friction`: unsaturated forces pass unchanged; saturated, mu N along a floor axis,
+    mu N / sqrt(2) per axis... along a diagonal, and a force between them leans to its axis."""
+    from safecdt_jax.envs.robots import pyramid_friction
+
+    normal, mu = jnp.full(5, 0.1), jnp.full(5, 0.8)
+    linear = jnp.array([[0.01, -0.02], [5.0, 0.0], [-5.0, -5.0], [3.0, 1.0], [0.0, 0.0]])
+    f = np.asarray(pyramid_friction(linear, normal, mu))
+    np.testing.assert_allclose(f[0], [0.01, -0.02], atol=1e-6)  # all four edges still loaded
+    np.testing.assert_allclose(f[1], [0.08, 0.0], atol=1e-6)
+    np.testing.assert_allclose(f[2], [-0.04, -0.04], atol=1e-6)  # |F_x| + |F_y| = mu N
+    np.testing.assert_allclose(f[3], [0.08, 0.0], atol=1e-6)  # turned onto the x axis
+    np.testing.assert_allclose(f[4], [0.0, 0.0], atol=1e-6)
+    assert np.all(np.abs(f).sum(1) <= 0.08 * (1 + 1e-5))
+
+
+def test_a_pyramidal_car_pushes_by_its_heading_and_an_unknown_cone_is_refused():
+    """With `friction_cone="pyramidal"` the same drive gives the same forces at headings 90 deg
+    apart but other ones at 45 deg (the diamond is fixed in the floor); the elliptic cone's
+    forces do not depend on the heading."""
+    import dataclasses
+
+    _, params = envs.make("CarCircle1")
+    loads = jnp.asarray(CAR._loads(), jnp.float32)
+    torque = params.gear_scale * CAR.executed_action(jnp.array([1.0, 1.0]))
+    base = hold("CarCircle1", (1.0, 1.0), 0.2).data
+    base = base.replace(xfrc_applied=jnp.zeros_like(base.xfrc_applied))
+
+    def body_forces(car, yaw):
+        data = base.replace(qpos=base.qpos.at[2].set(yaw),
+                            qvel=base.qvel.at[:2].set(rot2(yaw) @ rot2(base.qpos[2]).T
+                                                      @ base.qvel[:2]))
+        return np.asarray(car.contact_forces(data, torque, params, loads)[0])
+
+    pyr = dataclasses.replace(CAR, friction_cone="pyramidal")
+    np.testing.assert_allclose(body_forces(pyr, 0.2), body_forces(pyr, 0.2 + np.pi / 2),
+                               atol=1e-6)
+    assert not np.allclose(body_forces(pyr, 0.0), body_forces(pyr, np.pi / 4), atol=1e-4)
+    np.testing.assert_allclose(body_forces(CAR, 0.0), body_forces(CAR, np.pi / 4), atol=1e-6)
+    with pytest.raises(ValueError, match="friction_cone"):
+        body_forces(dataclasses.replace(CAR, friction_cone="square"), 0.0)

@@ -7,10 +7,12 @@ It imports only the peer's packages, never this project. Requests (JSON):
   "actions": null | [[a0, a1], ...]}`: observations [episodes, steps, obs_dim] under uniform
   random actions in [-1, 1]^2 (`actions` null) or the given open-loop script (from rest).
 - `{"cmd": "policy", "task": ..., "weights": "policy.npz", "episodes": 16, "seed": 0,
-  "deterministic": true}`: an exported expert (a tanh MLP on normalised observations, see
-  `experiments.sim2sim.export_policy`; `weights` null: uniform random actions); per-episode
-  return, cost and goals, and per cost term (`TERMS`, absent terms 0) the number of steps it
-  was positive.
+  "deterministic": true, "record": false}`: an exported expert (a tanh MLP on normalised
+  observations, see `experiments.sim2sim.export_policy`; `weights` null: uniform random
+  actions); per-episode return, cost and goals, and per cost term (`TERMS`, absent terms 0) the
+  number of steps it was positive. With `record`, also every step's observation before the
+  action, the action and whether a goal was met: `obs` [E, T, obs_dim], `actions` [E, T, 2],
+  `goal_met` [E, T].
 - `{"cmd": "contacts", "task": "CarGoal1", "actions": [[a0, a1], ...], "steps": 300,
   "start": 150, "seed": 0}`: per constant action (held from rest), the mean over steps
   `start`..`steps` of each ground contact's force on the car in the chassis frame (left wheel,
@@ -84,9 +86,11 @@ def _policy(weights: dict, deterministic: bool, rng):
     return act
 
 
-def policy(task: str, weights: str, episodes: int, seed: int, deterministic: bool) -> dict:
+def policy(task: str, weights: str, episodes: int, seed: int, deterministic: bool,
+           record: bool = False) -> dict:
     """Per-episode return, cost (cost steps), goals reached and cost steps per term (`TERMS`) of
-    an exported expert (`weights`), or of uniform random actions (`weights` None)."""
+    an exported expert (`weights`), or of uniform random actions (`weights` None); with
+    `record`, the per-step observations, actions and goal indicators too."""
     env, rng = make(task), np.random.default_rng(seed)
     if weights is None:
         def act(obs):
@@ -94,16 +98,25 @@ def policy(task: str, weights: str, episodes: int, seed: int, deterministic: boo
     else:
         with np.load(weights) as z:
             act = _policy(dict(z), deterministic, rng)
-    rets, costs, goals, terms = [], [], [], []
+    rets, costs, goals, terms, trace = [], [], [], [], ([], [], [])
     for ep in range(episodes):
         obs, _ = env.reset(seed=seed + ep)
         ret = cost = goal = 0.0
         steps = dict.fromkeys(TERMS, 0.0)
         done = False
+        if record:
+            for part in trace:
+                part.append([])
         while not done:
-            obs, r, c, term, trunc, info = env.step(act(obs))
+            a = act(obs)
+            if record:
+                trace[0][-1].append(obs)
+                trace[1][-1].append(a)
+            obs, r, c, term, trunc, info = env.step(a)
             ret, cost = ret + r, cost + float(c > 0)
             goal += float(info.get("goal_met", False))
+            if record:
+                trace[2][-1].append(bool(info.get("goal_met", False)))
             for k in TERMS:
                 steps[k] += float(info.get(k, 0.0) > 0)
             done = term or trunc
@@ -112,8 +125,12 @@ def policy(task: str, weights: str, episodes: int, seed: int, deterministic: boo
         goals.append(goal)
         terms.append([steps[k] for k in TERMS])
     terms = np.asarray(terms).reshape(episodes, len(TERMS))
-    return {"return": np.asarray(rets), "cost": np.asarray(costs), "goals": np.asarray(goals),
-            **{k: terms[:, i] for i, k in enumerate(TERMS)}}
+    out = {"return": np.asarray(rets), "cost": np.asarray(costs), "goals": np.asarray(goals),
+           **{k: terms[:, i] for i, k in enumerate(TERMS)}}
+    if record:
+        out.update(obs=np.asarray(trace[0], np.float32), actions=np.asarray(trace[1], np.float32),
+                   goal_met=np.asarray(trace[2]))
+    return out
 
 
 def contacts(task: str, actions: list, steps: int, start: int, seed: int) -> dict:

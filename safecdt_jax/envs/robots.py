@@ -218,6 +218,14 @@ class CarRobot(Robot):
     # drive and speed-up (RMS 0.134 -> 0.045; docs/research/environment-fidelity.md, issue 48).
     # Physics 5 was n = 0 with the constants `experiments.car_fit.PHYSICS_5` keeps.
     saturation_power: float = 1.82
+    # The shape of every contact's friction limit: "elliptic" (physics 5-7) bends the linear
+    # force onto a circle of radius L (`saturation_power`); "pyramidal" is native MuJoCo's
+    # default cone (`opt.cone`): four edges along the floor's (world) x and y axes, so the limit
+    # is a diamond |F_x| + |F_y| <= L fixed in the world, and a sliding contact's force leans
+    # toward the nearest world axis (`pyramid_friction`). Native's car, driven toward body +y,
+    # turns itself onto a world axis and keeps yawing for seconds after a turn; with the
+    # elliptic cone it does neither (experiments.drive_stats; an experiment for issue 48).
+    friction_cone: str = "elliptic"
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
@@ -261,6 +269,12 @@ class CarRobot(Robot):
                            self.slip_gain * rel[:2] * (rim - v_pts[:2, 1])], axis=-1)
         caster = -self.caster_gain * rel[2] * v_pts[2]
         forces = jnp.concatenate([wheel, caster[None]])
+        if self.friction_cone == "pyramidal":
+            world = pyramid_friction(forces @ rot.T, normal, limit / jnp.maximum(normal, 1e-12))
+            return world @ rot, normal
+        if self.friction_cone != "elliptic":
+            raise ValueError(
+                f"friction_cone: 'elliptic' or 'pyramidal', got {self.friction_cone!r}")
         # Each contact's force lies in its friction circle.
         size = jnp.linalg.norm(forces, axis=-1)
         # (a traced power, as experiments.car_fit's search passes, always takes the curve)
@@ -396,6 +410,35 @@ class CarRobot(Robot):
         `drive`: the last step's mean |torque| / limit, 0 at rest."""
         return {"caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0]), "caster_spin": jnp.zeros(3),
                 "drive": jnp.float32(0.0)}
+
+
+PYRAMID_EDGES = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], np.float32)
+
+
+def pyramid_friction(linear: jax.Array, normal: jax.Array, mu: jax.Array) -> jax.Array:
+    """Contact forces (N) [C, 2] in the world's floor axes under a four-edge friction pyramid.
+
+    `linear` [C, 2] is each contact's unsaturated (linear, slip-proportional) force in world
+    axes, `normal` [C] its normal load (N), `mu` [C] its friction coefficient. As MuJoCo's
+    pyramidal cone, the normal load is carried by four edges n + mu t_i (t_i = +-x, +-y of the
+    floor); each edge's share is N / 4 + (t_i . F) / (2 mu) + d, clipped at 0, with the common
+    shift d that keeps the shares summing to N (the soft normal constraint sinks a little
+    further). The force is mu sum_i f_i t_i: exactly `linear` while no edge empties, at most
+    mu N along an axis and mu N / sqrt(2) along a diagonal, and, once edges empty, turned toward
+    the nearest floor axis.
+    """
+    mu = jnp.maximum(mu, 1e-12)[:, None]
+    edges = jnp.asarray(PYRAMID_EDGES, linear.dtype)
+    a = (linear @ edges.T) / (2 * mu)  # [C, 4]: each edge's share above N / 4
+    top = -jnp.sort(-a, axis=-1)
+    k = jnp.arange(1, 5, dtype=linear.dtype)
+    quarter = normal[:, None] / 4
+    # With the k largest edges loaded: k (N / 4 + d) + their shares = N.
+    shift = (normal[:, None] - k * quarter - jnp.cumsum(top, axis=-1)) / k
+    loaded = jnp.sum(quarter + shift + top > 0, axis=-1)  # edges that keep a positive share
+    d = jnp.take_along_axis(shift, jnp.maximum(loaded - 1, 0)[:, None], axis=-1)
+    share = jnp.maximum(quarter + d + a, 0.0)
+    return mu * (share @ edges)
 
 
 def _quat_to_mat(q: jax.Array) -> jax.Array:

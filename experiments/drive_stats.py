@@ -1,0 +1,220 @@
+"""How an expert drives in each simulator: speed, turning, actions and goal-seeking (issue 48).
+
+    python -m experiments.drive_stats [--task CarGoal1] [--limit 25] [--episodes 32]
+        [--out experiments/results/drive_stats.json]
+
+The source task's expert (`sim2sim.pick_expert`), mean and sampled actions, closed loop in
+both simulators on each side's own layouts (the native side records through the peer's
+`policy` request). From every step's observation (before the action) and action:
+- goals per episode and steps per goal; the goal's distance (m) read from the goal lidar
+  (3 m range) the step after a goal was met (how far the next goal spawns) and at every step;
+- the heading error to the goal (deg, from the goal lidar's strongest bin: 22.5 deg bins);
+- forward speed (m/s, velocimeter; the Car's forward is its body -y) and |yaw rate| (rad/s,
+  gyro z);
+- the action's drive (a0 + a1) / 2 and turn |a0 - a1| / 2, and the share of saturated actions;
+- forward speed per drive bin, the part of the speed that the dynamics decide for a given
+  action: if the bins agree and the marginals do not, the policy acts differently (what it
+  sees differs); if the bins differ, the car answers the same action differently.
+Then (`recovery`) a turn and the recovery from it, open loop from rest in both simulators, in
+each travel direction: 100 steps straight, 30 of a one-wheel turn or a spin, 100 straight
+again (native: 8 layouts; ours: the floor is flat, 1). Per script the peak |yaw rate| at the
+turn's onset (steps 100-110), the turn's steady yaw rate (120-130), the yaw rate left over
+after it (135-195: a car that drives straight again reads 0) and the speed regained (130-160).
+Writes JSON and markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import machine, markdown_table, write_json, write_markdown
+
+DRIVE_BINS = (-1.01, 0.0, 0.5, 0.8, 0.95, 1.01)
+LIDAR_RANGE = 3.0
+
+
+def ours_recorded(task: str, snapshot_file: Path, index: int, episodes: int,
+                  deterministic: bool) -> dict[str, np.ndarray]:
+    """Our side of `native.py`'s recorded `policy`: obs [E, T, D] before each action, actions
+    [E, T, 2] and goal_met [E, T], one jitted vmap over `episodes` keys from seed 0."""
+    import jax
+
+    from experiments.sim2sim import expert_act
+    from safecdt_jax import envs
+
+    act = expert_act(snapshot_file, index, deterministic)
+    env, params = envs.make(task)
+
+    def episode(key):
+        def step(state, k):
+            a = act(k, state.obs)
+            nxt = env.step(state, a, params)
+            return nxt, (state.obs, a, nxt.info["goal_met"] > 0)
+
+        k0, k1 = jax.random.split(key)
+        _, out = jax.lax.scan(step, env.reset(k0, params),
+                              jax.random.split(k1, env.episode_length))
+        return out
+
+    keys = jax.random.split(jax.random.PRNGKey(0), episodes)
+    obs, actions, goal_met = jax.jit(jax.vmap(episode))(keys)
+    return {"obs": np.asarray(obs), "actions": np.asarray(actions),
+            "goal_met": np.asarray(goal_met)}
+
+
+def drive_summary(rec: dict[str, np.ndarray], n_sensors: int,
+                  goal_task: bool = True) -> dict[str, float | list]:
+    """The statistics of the module docstring from one side's recorded episodes (the goal
+    statistics only for a Goal task: `goal_task`)."""
+    obs, a, met = rec["obs"], rec["actions"].astype(np.float64), rec["goal_met"].astype(bool)
+    # Positive torques drive toward body -y, negative ones toward +y: the velocimeter's y
+    # reads -speed when driving -y.
+    speed, yaw = obs[..., 4], np.abs(obs[..., 8])
+    drive, turn = a.mean(-1), np.abs(a[..., 0] - a[..., 1]) / 2
+    out = {}
+    if goal_task:
+        goal = obs[..., n_sensors:n_sensors + 16]
+        dist = LIDAR_RANGE * (1.0 - goal.max(-1))
+        bin_angle = (np.argmax(goal, -1) + 0.5) * 2 * np.pi / 16
+        # Heading error from the direction the expert mostly drives, body +y (90 deg).
+        heading = np.abs(np.angle(np.exp(1j * (bin_angle - np.pi / 2))))
+        spawn = dist[:, 1:][met[:, :-1]]
+        goals = met.sum(1)
+        out = {"goals": float(goals.mean()),
+               "steps_per_goal": float(met.size / max(goals.sum(), 1)),
+               "spawn_distance": float(spawn.mean()) if spawn.size else float("nan"),
+               "goal_distance": float(dist.mean()),
+               "heading_error_deg": float(np.degrees(heading).mean())}
+    out |= {"speed_plus_y": float(speed.mean()), "abs_speed": float(np.abs(speed).mean()),
+            "abs_yaw_rate": float(yaw.mean()), "drive": float(drive.mean()),
+            "abs_turn": float(turn.mean()), "saturated": float((np.abs(a) >= 0.999).mean())}
+    idx = np.digitize(drive, DRIVE_BINS) - 1
+    out["speed_by_drive"] = [float(speed[idx == i].mean()) if (idx == i).sum() >= 200 else None
+                             for i in range(len(DRIVE_BINS) - 1)]
+    out["share_by_drive"] = [float((idx == i).mean()) for i in range(len(DRIVE_BINS) - 1)]
+    return out
+
+
+def compare(task: str, limit: float, episodes: int) -> list[dict]:
+    """Per action mode, our and native's `drive_summary` of the task's expert in `task`."""
+    from experiments.sim2sim import export_policy, native, pick_expert
+    from safecdt_jax import envs
+    from safecdt_jax.experts.collect import snapshot_path
+
+    index = pick_expert(task, limit)
+    n_sensors = envs.make(task)[0].robot.n_sensors
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        weights = Path(tmp) / "policy.npz"
+        export_policy(snapshot_path(task), index, weights)
+        for det in (True, False):
+            o = ours_recorded(task, snapshot_path(task), index, episodes, det)
+            t = native({"cmd": "policy", "task": task, "weights": str(weights),
+                        "episodes": episodes, "seed": 0, "deterministic": det, "record": True})
+            goal_task = "Goal" in task
+            rows.append({"policy": "mean" if det else "sampled",
+                         "ours": drive_summary(o, n_sensors, goal_task),
+                         "theirs": drive_summary(t, n_sensors, goal_task)})
+    return rows
+
+
+RECOVERY = {"one wheel": ((1.0, 1.0), (1.0, 0.0)), "spin": ((1.0, 1.0), (1.0, -1.0))}
+
+
+def recovery_scripts() -> list[tuple[str, np.ndarray]]:
+    """Each `RECOVERY` manoeuvre in both travel directions: positive torques drive toward body
+    -y, the same script negated toward +y. Actions [230, 2]."""
+    out = []
+    for name, (straight, turn) in RECOVERY.items():
+        acts = np.array([straight] * 100 + [turn] * 30 + [straight] * 100)
+        out += [(f"{name}, toward -y", acts), (f"{name}, toward +y", -acts)]
+    return out
+
+
+def recovery(task: str) -> list[dict]:
+    """Per `recovery_scripts` script, each side's onset peak, turn and leftover |yaw rate|
+    (rad/s, signed by the turn's direction) and regained speed (m/s), as the docstring says."""
+    from experiments.sim2sim import native, ours_trace
+
+    rows = []
+    for name, acts in recovery_scripts():
+        script = acts.tolist()
+        o = ours_trace(task, 1, len(acts), 0, script).mean(0)
+        t = native({"cmd": "trace", "task": task, "episodes": 8, "steps": len(acts), "seed": 0,
+                    "actions": script})["obs"].mean(0)
+        row = {"script": name}
+        for side, x in (("ours", o), ("theirs", t)):
+            sign = np.sign(x[120:130, 8].mean())
+            yaw, speed = sign * x[:, 8], np.abs(x[:, 4])
+            row[side] = {"onset_peak": float(yaw[100:110].max()),
+                         "turn": float(yaw[120:130].mean()),
+                         "leftover": float(yaw[135:195].mean()),
+                         "regained_speed": float(speed[130:160].mean())}
+        rows.append(row)
+    return rows
+
+
+def _fmt(x) -> str:
+    return "-" if x is None else f"{x:.3f}"
+
+
+def report(results: dict) -> str:
+    """Markdown body: per action mode, ours beside native, then the speed per drive bin."""
+    lines = [f"The {results['task']} expert of cost limit {results['limit']:g}, "
+             f"{results['episodes']} episodes a side, each side's own layouts.", ""]
+    bins = [f"{lo:g}..{hi:g}" for lo, hi in itertools.pairwise(DRIVE_BINS)]
+    for row in results["rows"]:
+        o, t = row["ours"], row["theirs"]
+        keys = [k for k in o if not isinstance(o[k], list)]
+        lines += [f"## {row['policy']} action", "",
+                  markdown_table(["statistic", "ours", "Safety-Gymnasium", "theirs / ours"],
+                                 [[k, _fmt(o[k]), _fmt(t[k]),
+                                   _fmt(t[k] / o[k]) if o[k] else "-"] for k in keys]), "",
+                  markdown_table(["drive (a0 + a1) / 2", "share ours / SG",
+                                  "forward speed ours / SG (m/s)"],
+                                 [[b, f"{so:.3f} / {st:.3f}",
+                                   f"{_fmt(vo)} / {_fmt(vt)}"]
+                                  for b, so, st, vo, vt in zip(bins, o["share_by_drive"],
+                                                              t["share_by_drive"],
+                                                              o["speed_by_drive"],
+                                                              t["speed_by_drive"],
+                                                              strict=True)]), ""]
+    if results.get("recovery"):
+        keys = ("onset_peak", "turn", "leftover", "regained_speed")
+        lines += ["## A turn and the recovery from it (open loop, ours / Safety-Gymnasium)", "",
+                  markdown_table(["script", "onset peak yaw (rad/s)", "turn yaw",
+                                  "leftover yaw, steps 135-195", "speed 130-160 (m/s)"],
+                                 [[r["script"], *(f"{r['ours'][k]:.3f} / {r['theirs'][k]:.3f}"
+                                                  for k in keys)]
+                                  for r in results["recovery"]]), ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Command line: compare, write JSON and markdown."""
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--task", default="CarGoal1")
+    p.add_argument("--limit", type=float, default=25.0)
+    p.add_argument("--episodes", type=int, default=32)
+    p.add_argument("--out", type=Path, default=Path("experiments/results/drive_stats.json"))
+    args = p.parse_args(argv)
+    command = "python -m experiments.drive_stats " + " ".join(
+        sys.argv[1:] if argv is None else argv)
+    results = {"command": command, "machine": machine(), "task": args.task,
+               "limit": args.limit, "episodes": args.episodes,
+               "rows": compare(args.task, args.limit, args.episodes),
+               "recovery": recovery(args.task)}
+    write_json(args.out, results)
+    write_markdown(args.out.with_suffix(".md"), "How an expert drives in each simulator",
+                   command, report(results))
+    print(args.out.with_suffix(".md").read_text())
+
+
+if __name__ == "__main__":
+    main()
