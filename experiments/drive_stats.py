@@ -1,18 +1,19 @@
 """How an expert drives in each simulator: speed, turning, actions and goal-seeking (issue 48).
 
     python -m experiments.drive_stats [--task CarGoal1] [--limit 25] [--episodes 32]
-        [--out experiments/results/drive_stats.json]
+        [--native-cone pyramidal|elliptic] [--out experiments/results/drive_stats.json]
 
 The source task's expert (`sim2sim.pick_expert`), mean and sampled actions, closed loop in
 both simulators on each side's own layouts (the native side records through the peer's
 `policy` request). From every step's observation (before the action) and action:
 - goals per episode and steps per goal; the goal's distance (m) read from the goal lidar
   (3 m range) the step after a goal was met (how far the next goal spawns) and at every step;
-- the heading error to the goal (deg, from the goal lidar's strongest bin: 22.5 deg bins);
-- forward speed (m/s, velocimeter; the Car's forward is its body -y) and |yaw rate| (rad/s,
-  gyro z);
+- the heading error to the goal (deg, from the goal lidar's strongest bin: 22.5 deg bins),
+  measured from body +y, the way the CarGoal1 expert mostly drives;
+- the speed toward body +y (m/s, velocimeter y: negative torques drive that way, positive
+  ones toward -y), its magnitude, and |yaw rate| (rad/s, gyro z);
 - the action's drive (a0 + a1) / 2 and turn |a0 - a1| / 2, and the share of saturated actions;
-- forward speed per drive bin, the part of the speed that the dynamics decide for a given
+- the speed per drive bin, the part of the speed that the dynamics decide for a given
   action: if the bins agree and the marginals do not, the policy acts differently (what it
   sees differs); if the bins differ, the car answers the same action differently.
 Then (`recovery`) a turn and the recovery from it, open loop from rest in both simulators, in
@@ -20,7 +21,8 @@ each travel direction: 100 steps straight, 30 of a one-wheel turn or a spin, 100
 again (native: 8 layouts; ours: the floor is flat, 1). Per script the peak |yaw rate| at the
 turn's onset (steps 100-110), the turn's steady yaw rate (120-130), the yaw rate left over
 after it (135-195: a car that drives straight again reads 0) and the speed regained (130-160).
-Writes JSON and markdown.
+`--native-cone elliptic` runs the native side with MuJoCo's elliptic friction cone instead of
+its default pyramidal one (what native's behaviour owes to the cone). Writes JSON and markdown.
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ def ours_recorded(task: str, snapshot_file: Path, index: int, episodes: int,
         def step(state, k):
             a = act(k, state.obs)
             nxt = env.step(state, a, params)
-            return nxt, (state.obs, a, nxt.info["goal_met"] > 0)
+            return nxt, (state.obs, a, nxt.info["goal_met"] > 0, nxt.cost > 0)
 
         k0, k1 = jax.random.split(key)
         _, out = jax.lax.scan(step, env.reset(k0, params),
@@ -63,9 +65,9 @@ def ours_recorded(task: str, snapshot_file: Path, index: int, episodes: int,
         return out
 
     keys = jax.random.split(jax.random.PRNGKey(0), episodes)
-    obs, actions, goal_met = jax.jit(jax.vmap(episode))(keys)
+    obs, actions, goal_met, cost = jax.jit(jax.vmap(episode))(keys)
     return {"obs": np.asarray(obs), "actions": np.asarray(actions),
-            "goal_met": np.asarray(goal_met)}
+            "goal_met": np.asarray(goal_met), "cost": np.asarray(cost).sum(1)}
 
 
 def drive_summary(rec: dict[str, np.ndarray], n_sensors: int,
@@ -91,7 +93,8 @@ def drive_summary(rec: dict[str, np.ndarray], n_sensors: int,
                "spawn_distance": float(spawn.mean()) if spawn.size else float("nan"),
                "goal_distance": float(dist.mean()),
                "heading_error_deg": float(np.degrees(heading).mean())}
-    out |= {"speed_plus_y": float(speed.mean()), "abs_speed": float(np.abs(speed).mean()),
+    out |= {"cost": float(np.mean(rec["cost"])), "median_cost": float(np.median(rec["cost"])),
+            "speed_plus_y": float(speed.mean()), "abs_speed": float(np.abs(speed).mean()),
             "abs_yaw_rate": float(yaw.mean()), "drive": float(drive.mean()),
             "abs_turn": float(turn.mean()), "saturated": float((np.abs(a) >= 0.999).mean())}
     idx = np.digitize(drive, DRIVE_BINS) - 1
@@ -101,8 +104,9 @@ def drive_summary(rec: dict[str, np.ndarray], n_sensors: int,
     return out
 
 
-def compare(task: str, limit: float, episodes: int) -> list[dict]:
-    """Per action mode, our and native's `drive_summary` of the task's expert in `task`."""
+def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> list[dict]:
+    """Per action mode, our and native's `drive_summary` of the task's expert in `task`
+    (native's friction cone `cone`)."""
     from experiments.sim2sim import export_policy, native, pick_expert
     from safecdt_jax import envs
     from safecdt_jax.experts.collect import snapshot_path
@@ -116,7 +120,8 @@ def compare(task: str, limit: float, episodes: int) -> list[dict]:
         for det in (True, False):
             o = ours_recorded(task, snapshot_path(task), index, episodes, det)
             t = native({"cmd": "policy", "task": task, "weights": str(weights),
-                        "episodes": episodes, "seed": 0, "deterministic": det, "record": True})
+                        "episodes": episodes, "seed": 0, "deterministic": det, "record": True,
+                        **_cone(cone)})
             goal_task = "Goal" in task
             rows.append({"policy": "mean" if det else "sampled",
                          "ours": drive_summary(o, n_sensors, goal_task),
@@ -137,7 +142,12 @@ def recovery_scripts() -> list[tuple[str, np.ndarray]]:
     return out
 
 
-def recovery(task: str) -> list[dict]:
+def _cone(cone: str) -> dict:
+    """The native request's cone field: absent for the default, so cached runs stay valid."""
+    return {} if cone == "pyramidal" else {"cone": cone}
+
+
+def recovery(task: str, cone: str = "pyramidal") -> list[dict]:
     """Per `recovery_scripts` script, each side's onset peak, turn and leftover |yaw rate|
     (rad/s, signed by the turn's direction) and regained speed (m/s), as the docstring says."""
     from experiments.sim2sim import native, ours_trace
@@ -147,7 +157,7 @@ def recovery(task: str) -> list[dict]:
         script = acts.tolist()
         o = ours_trace(task, 1, len(acts), 0, script).mean(0)
         t = native({"cmd": "trace", "task": task, "episodes": 8, "steps": len(acts), "seed": 0,
-                    "actions": script})["obs"].mean(0)
+                    "actions": script, **_cone(cone)})["obs"].mean(0)
         row = {"script": name}
         for side, x in (("ours", o), ("theirs", t)):
             sign = np.sign(x[120:130, 8].mean())
@@ -167,7 +177,8 @@ def _fmt(x) -> str:
 def report(results: dict) -> str:
     """Markdown body: per action mode, ours beside native, then the speed per drive bin."""
     lines = [f"The {results['task']} expert of cost limit {results['limit']:g}, "
-             f"{results['episodes']} episodes a side, each side's own layouts.", ""]
+             f"{results['episodes']} episodes a side, each side's own layouts; native's "
+             f"friction cone {results.get('native_cone', 'pyramidal')}.", ""]
     bins = [f"{lo:g}..{hi:g}" for lo, hi in itertools.pairwise(DRIVE_BINS)]
     for row in results["rows"]:
         o, t = row["ours"], row["theirs"]
@@ -177,7 +188,7 @@ def report(results: dict) -> str:
                                  [[k, _fmt(o[k]), _fmt(t[k]),
                                    _fmt(t[k] / o[k]) if o[k] else "-"] for k in keys]), "",
                   markdown_table(["drive (a0 + a1) / 2", "share ours / SG",
-                                  "forward speed ours / SG (m/s)"],
+                                  "speed toward body +y, ours / SG (m/s)"],
                                  [[b, f"{so:.3f} / {st:.3f}",
                                    f"{_fmt(vo)} / {_fmt(vt)}"]
                                   for b, so, st, vo, vt in zip(bins, o["share_by_drive"],
@@ -202,14 +213,16 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--task", default="CarGoal1")
     p.add_argument("--limit", type=float, default=25.0)
     p.add_argument("--episodes", type=int, default=32)
+    p.add_argument("--native-cone", choices=("pyramidal", "elliptic"), default="pyramidal")
     p.add_argument("--out", type=Path, default=Path("experiments/results/drive_stats.json"))
     args = p.parse_args(argv)
     command = "python -m experiments.drive_stats " + " ".join(
         sys.argv[1:] if argv is None else argv)
+    cone = args.native_cone
     results = {"command": command, "machine": machine(), "task": args.task,
-               "limit": args.limit, "episodes": args.episodes,
-               "rows": compare(args.task, args.limit, args.episodes),
-               "recovery": recovery(args.task)}
+               "limit": args.limit, "episodes": args.episodes, "native_cone": cone,
+               "rows": compare(args.task, args.limit, args.episodes, cone),
+               "recovery": recovery(args.task, cone)}
     write_json(args.out, results)
     write_markdown(args.out.with_suffix(".md"), "How an expert drives in each simulator",
                    command, report(results))

@@ -405,11 +405,15 @@ def ours_random(task: str, episodes: int, seed: int) -> dict[str, np.ndarray]:
 
 
 def ours_episodes(task: str, policy, episodes: int, seed: int,
-                  shifts: list[dict[str, float]] | None = None) -> dict[str, np.ndarray]:
+                  shifts: list[dict[str, float]] | None = None,
+                  robot=None) -> dict[str, np.ndarray]:
     """Per-episode return, cost, goals and cost steps per term of `policy(key, state) -> action`
     in our `task`, `episodes` episodes from `seed`'s keys, one jitted vmap. With `shifts`
     (`envs.dynamics` scales), every array gains a leading shift axis and each shift runs the
-    same keys (paired: the same layouts and policy noise under each dynamics)."""
+    same keys (paired: the same layouts and policy noise under each dynamics). `robot`: a
+    variant of the task's robot (e.g. a `CarRobot` with other constants) in its place."""
+    import dataclasses
+
     import jax
     import jax.numpy as jnp
 
@@ -418,6 +422,8 @@ def ours_episodes(task: str, policy, episodes: int, seed: int,
     from safecdt_jax.envs.rollout import scan_episode
 
     env, params = envs.make(task)
+    if robot is not None:
+        env = dataclasses.replace(env, robot=robot)
     zero = jnp.float32(0.0)
 
     def record(s):

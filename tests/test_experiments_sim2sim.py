@@ -201,3 +201,67 @@ def test_cached_sweep_runs_once_per_env_version(tmp_path, monkeypatch):
     stale = json.loads((tmp_path / "s" / "results.json").read_text()) | {"target_env": "old"}
     (tmp_path / "s" / "results.json").write_text(json.dumps(stale))
     assert cached_sweep(tmp_path / "s", "CarGoal2", run, "t")["n"] == 2  # run again
+
+
+def test_drive_summary_reads_goals_speed_turn_and_spawn_distance_from_records():
+    """Two hand-made episodes of 4 steps: a goal met at step 1, the next goal 1.5 m away on the
+    lidar; the velocimeter's y and the gyro's z give the speed and |yaw rate|."""
+    from experiments.drive_stats import drive_summary
+
+    n_sensors = 24
+    obs = np.zeros((2, 4, n_sensors + 48), np.float32)
+    obs[..., 4], obs[..., 8] = 0.5, -0.2
+    obs[:, :, n_sensors + 4] = 0.5  # the goal 1.5 m away (3 m range) in lidar bin 4 (90-112 deg)
+    actions = np.tile(np.array([[-1.0, 0.0]], np.float32), (2, 4, 1))
+    goal_met = np.zeros((2, 4), bool)
+    goal_met[0, 1] = True
+    s = drive_summary({"obs": obs, "actions": actions, "goal_met": goal_met,
+                       "cost": np.array([0.0, 4.0])}, n_sensors)
+    assert s["goals"] == 0.5 and s["steps_per_goal"] == 8.0
+    assert s["spawn_distance"] == pytest.approx(1.5) and s["goal_distance"] == pytest.approx(1.5)
+    assert s["heading_error_deg"] == pytest.approx(11.25)  # bin 4's centre, from body +y
+    assert s["speed_plus_y"] == pytest.approx(0.5) and s["abs_yaw_rate"] == pytest.approx(0.2)
+    assert s["drive"] == -0.5 and s["abs_turn"] == 0.5 and s["saturated"] == 0.5
+    assert s["cost"] == 2.0 and s["median_cost"] == 2.0
+    assert "goals" not in drive_summary({"obs": obs, "actions": actions, "goal_met": goal_met,
+                                         "cost": np.zeros(2)}, n_sensors, goal_task=False)
+
+
+def test_recovery_and_car_fit_scripts_cover_both_travel_directions():
+    from experiments.car_fit import PLUS_Y, STEPS, loss, metrics, scripts
+    from experiments.drive_stats import recovery_scripts
+
+    rec = recovery_scripts()
+    assert len(rec) == 4
+    for (name_minus, minus), (name_plus, plus) in zip(rec[::2], rec[1::2], strict=True):
+        assert name_minus.endswith("-y") and name_plus.endswith("+y")
+        np.testing.assert_array_equal(plus, -minus)
+        assert minus.shape == (230, 2) and (minus[:100] > 0).all()  # toward -y first
+    names = [name for name, _ in scripts(True)]
+    assert names[-1] == "random" and len(names) == len(set(names))
+    recoveries = [n for n in names if n.startswith("recovery: ")]
+    mirrored = [n for n in names if n.endswith(PLUS_Y) and n not in recoveries]
+    assert len(recoveries) == 4 and len(mirrored) == 9
+    assert [n for n, _ in scripts()] == [n for n in names if n not in recoveries + mirrored]
+    # a recovery row: a 1 rad/s turn (steps 100-130) then 0.2 rad/s left over, at 0.5 m/s
+    yaw = np.zeros((len(names) + 1, STEPS))
+    yaw[:, 100:130], yaw[:, 135:195] = -1.0, -0.2
+    m = metrics(np.full_like(yaw, 0.5), yaw, plus_y=True)
+    assert m["recovery: spin, toward +y"] == pytest.approx([1.0, 1.0, 0.2, 0.5])
+    assert loss(m, m) == 0.0
+
+
+def test_car_variants_read_fields_and_fits_and_refuse_an_unknown_field(tmp_path):
+    import json
+
+    from experiments.car_variants import fit_variant, parse_variant
+
+    assert parse_variant("pyr=friction_cone:pyramidal,sliding:0.9") == (
+        "pyr", {"friction_cone": "pyramidal", "sliding": 0.9})
+    with pytest.raises(SystemExit, match="'grip' is not a CarRobot field"):
+        parse_variant("x=grip:1")
+    path = tmp_path / "fit.json"
+    path.write_text(json.dumps({"constants": {"sliding": 1.0}, "saturation_power": 2.0,
+                                "cone": "pyramidal"}))
+    assert fit_variant(path) == {"sliding": 1.0, "saturation_power": 2.0,
+                                 "friction_cone": "pyramidal"}

@@ -6,6 +6,9 @@ It imports only the peer's packages, never this project. Requests (JSON):
 - `{"cmd": "trace", "task": "CarGoal1", "episodes": 4, "steps": 500, "seed": 0,
   "actions": null | [[a0, a1], ...]}`: observations [episodes, steps, obs_dim] under uniform
   random actions in [-1, 1]^2 (`actions` null) or the given open-loop script (from rest).
+  `trace` and `policy` also take `"cone": "elliptic"`, which switches MuJoCo's friction cone
+  (`opt.cone`) from its default, pyramidal, after every reset (an experiment: which of
+  native's behaviours the cone makes).
 - `{"cmd": "policy", "task": ..., "weights": "policy.npz", "episodes": 16, "seed": 0,
   "deterministic": true, "record": false}`: an exported expert (a tanh MLP on normalised
   observations, see `experiments.sim2sim.export_policy`; `weights` null: uniform random
@@ -52,12 +55,23 @@ def make(task: str):
     return env
 
 
-def trace(task: str, episodes: int, steps: int, seed: int, actions=None) -> dict:
+def _reset(env, seed: int, cone: str):
+    """`env.reset(seed=seed)` with the friction cone `cone` set on the rebuilt model."""
+    import mujoco
+
+    out = env.reset(seed=seed)
+    if cone != "pyramidal":
+        env.unwrapped.task.model.opt.cone = {"elliptic": mujoco.mjtCone.mjCONE_ELLIPTIC}[cone]
+    return out
+
+
+def trace(task: str, episodes: int, steps: int, seed: int, actions=None,
+          cone: str = "pyramidal") -> dict:
     """Observations after each step, [episodes, steps, obs_dim] float32."""
     env, rng = make(task), np.random.default_rng(seed)
     out = []
     for ep in range(episodes):
-        env.reset(seed=seed + ep)
+        _reset(env, seed + ep, cone)
         obs = []
         for t in range(steps):
             a = rng.uniform(-1, 1, 2) if actions is None else np.asarray(actions[t], float)
@@ -87,7 +101,7 @@ def _policy(weights: dict, deterministic: bool, rng):
 
 
 def policy(task: str, weights: str, episodes: int, seed: int, deterministic: bool,
-           record: bool = False) -> dict:
+           record: bool = False, cone: str = "pyramidal") -> dict:
     """Per-episode return, cost (cost steps), goals reached and cost steps per term (`TERMS`) of
     an exported expert (`weights`), or of uniform random actions (`weights` None); with
     `record`, the per-step observations, actions and goal indicators too."""
@@ -100,7 +114,7 @@ def policy(task: str, weights: str, episodes: int, seed: int, deterministic: boo
             act = _policy(dict(z), deterministic, rng)
     rets, costs, goals, terms, trace = [], [], [], [], ([], [], [])
     for ep in range(episodes):
-        obs, _ = env.reset(seed=seed + ep)
+        obs, _ = _reset(env, seed + ep, cone)
         ret = cost = goal = 0.0
         steps = dict.fromkeys(TERMS, 0.0)
         done = False

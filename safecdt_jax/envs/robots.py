@@ -219,12 +219,15 @@ class CarRobot(Robot):
     # Physics 5 was n = 0 with the constants `experiments.car_fit.PHYSICS_5` keeps.
     saturation_power: float = 1.82
     # The shape of every contact's friction limit: "elliptic" (physics 5-7) bends the linear
-    # force onto a circle of radius L (`saturation_power`); "pyramidal" is native MuJoCo's
-    # default cone (`opt.cone`): four edges along the floor's (world) x and y axes, so the limit
-    # is a diamond |F_x| + |F_y| <= L fixed in the world, and a sliding contact's force leans
-    # toward the nearest world axis (`pyramid_friction`). Native's car, driven toward body +y,
-    # turns itself onto a world axis and keeps yawing for seconds after a turn; with the
-    # elliptic cone it does neither (experiments.drive_stats; an experiment for issue 48).
+    # force onto a circle of radius L (`saturation_power`); "pyramidal" replaces that with a
+    # four-edge cone as native MuJoCo's default (`opt.cone`): edges along the floor's (world)
+    # x and y axes, so the limit is a diamond |F_x| + |F_y| <= L fixed in the world, and a
+    # sliding contact's force leans toward the nearest world axis (`pyramid_friction`).
+    # Native's car, driven toward body +y, turns itself onto a world axis and keeps yawing for
+    # seconds after a turn, and with opt.cone elliptic does neither; this hard diamond
+    # reproduces both but also slows the car on diagonal headings, which native's soft
+    # contacts do not (docs/research/environment-fidelity.md, 2026-12-07 night). An experiment
+    # for issue 48 (`experiments.car_fit --cone`), not a physics version.
     friction_cone: str = "elliptic"
 
     def _loads(self) -> np.ndarray:
