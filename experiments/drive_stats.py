@@ -12,7 +12,9 @@ both simulators on each side's own layouts (the native side records through the 
   measured from body +y, the way the CarGoal1 expert mostly drives;
 - the speed toward body +y (m/s, velocimeter y: negative torques drive that way, positive
   ones toward -y), its magnitude, and |yaw rate| (rad/s, gyro z);
-- the action's drive (a0 + a1) / 2 and turn |a0 - a1| / 2, and the share of saturated actions;
+- the executed action's drive (a0 + a1) / 2 and turn |a0 - a1| / 2 (the Car's torques
+  clip(a, +-0.02) / 0.02: a raw action of 0.5 drives as hard as 1), and the share of actions
+  at the torque limit;
 - the speed per drive bin, the part of the speed that the dynamics decide for a given
   action: if the bins agree and the marginals do not, the policy acts differently (what it
   sees differs); if the bins differ, the car answers the same action differently.
@@ -70,14 +72,16 @@ def ours_recorded(task: str, snapshot_file: Path, index: int, episodes: int,
             "goal_met": np.asarray(goal_met), "cost": np.asarray(cost).sum(1)}
 
 
-def drive_summary(rec: dict[str, np.ndarray], n_sensors: int,
-                  goal_task: bool = True) -> dict[str, float | list]:
+def drive_summary(rec: dict[str, np.ndarray], n_sensors: int, goal_task: bool = True,
+                  limit: float = 1.0) -> dict[str, float | list]:
     """The statistics of the module docstring from one side's recorded episodes (the goal
-    statistics only for a Goal task: `goal_task`)."""
+    statistics only for a Goal task: `goal_task`); actions are clipped at `limit` (the Car's
+    torque limit 0.02) and read in its units."""
     obs, a, met = rec["obs"], rec["actions"].astype(np.float64), rec["goal_met"].astype(bool)
     # Positive torques drive toward body -y, negative ones toward +y: the velocimeter's y
     # reads -speed when driving -y.
     speed, yaw = obs[..., 4], np.abs(obs[..., 8])
+    a = np.clip(a, -limit, limit) / limit  # what the actuators execute, in units of the limit
     drive, turn = a.mean(-1), np.abs(a[..., 0] - a[..., 1]) / 2
     out = {}
     if goal_task:
@@ -112,7 +116,8 @@ def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> 
     from safecdt_jax.experts.collect import snapshot_path
 
     index = pick_expert(task, limit)
-    n_sensors = envs.make(task)[0].robot.n_sensors
+    robot = envs.make(task)[0].robot
+    n_sensors, limit = robot.n_sensors, getattr(robot, "torque_limit", 1.0)
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         weights = Path(tmp) / "policy.npz"
@@ -124,8 +129,8 @@ def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> 
                         **_cone(cone)})
             goal_task = "Goal" in task
             rows.append({"policy": "mean" if det else "sampled",
-                         "ours": drive_summary(o, n_sensors, goal_task),
-                         "theirs": drive_summary(t, n_sensors, goal_task)})
+                         "ours": drive_summary(o, n_sensors, goal_task, limit),
+                         "theirs": drive_summary(t, n_sensors, goal_task, limit)})
     return rows
 
 
