@@ -226,7 +226,8 @@ def test_drive_summary_reads_goals_speed_turn_and_spawn_distance_from_records():
     assert "goals" not in drive_summary({"obs": obs, "actions": actions, "goal_met": goal_met,
                                          "cost": np.zeros(2)}, n_sensors, goal_task=False)
     # The Car's torques saturate at 0.02: (-1, 0.01) executes as (-1, 0.5) of the limit.
-    car = drive_summary({"obs": obs, "actions": actions + [0.0, 0.01], "goal_met": goal_met,
+    nudged = actions + np.float32([0.0, 0.01])
+    car = drive_summary({"obs": obs, "actions": nudged, "goal_met": goal_met,
                          "cost": np.zeros(2)}, n_sensors, limit=0.02)
     assert car["drive"] == pytest.approx(-0.25) and car["abs_turn"] == pytest.approx(0.75)
 
