@@ -225,9 +225,11 @@ class CarRobot(Robot):
     # sliding contact's force leans toward the nearest world axis (`pyramid_friction`).
     # Native's car, driven toward body +y, turns itself onto a world axis and keeps yawing for
     # seconds after a turn, and with opt.cone elliptic does neither; this hard diamond
-    # reproduces both but also slows the car on diagonal headings, which native's soft
-    # contacts do not (docs/research/environment-fidelity.md, 2026-12-07 night). An experiment
-    # for issue 48 (`experiments.car_fit --cone`), not a physics version.
+    # reproduces both but also makes the top speed depend on the heading (0.74 m/s on a world
+    # axis, 0.89 on a diagonal), which native's soft contacts do not (0.74-0.79 at any
+    # heading; docs/research/environment-fidelity.md, 2026-12-07 night). An experiment for
+    # issue 48 (`experiments.car_fit --cone`, `experiments.car_variants`), not a physics
+    # version.
     friction_cone: str = "elliptic"
 
     def _loads(self) -> np.ndarray:
