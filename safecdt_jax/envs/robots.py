@@ -225,9 +225,10 @@ class CarRobot(Robot):
     # sliding contact's force leans toward the nearest world axis (`pyramid_friction`).
     # Native's car, driven toward body +y, turns itself onto a world axis and keeps yawing for
     # seconds after a turn, and with opt.cone elliptic does neither; this hard diamond
-    # reproduces both but also makes the top speed depend on the heading (0.74 m/s on a world
-    # axis, 0.89 on a diagonal), which native's soft contacts do not (0.74-0.79 at any
-    # heading; docs/research/environment-fidelity.md, 2026-12-07 night). An experiment for
+    # reproduces both but also makes the top speed depend on the heading (toward +y it settles
+    # on a world axis at 0.74 m/s, toward -y on a diagonal at 0.89), which native's soft
+    # contacts do not (0.74-0.79 at any heading; docs/research/environment-fidelity.md,
+    # 2026-12-07 night). An experiment for
     # issue 48 (`experiments.car_fit --cone`, `experiments.car_variants`), not a physics
     # version.
     friction_cone: str = "elliptic"
