@@ -306,3 +306,27 @@ def test_a_pyramidal_car_pushes_by_its_heading_and_an_unknown_cone_is_refused():
     np.testing.assert_allclose(body_forces(CAR, 0.0), body_forces(CAR, np.pi / 4), atol=1e-6)
     with pytest.raises(ValueError, match="friction_cone"):
         body_forces(dataclasses.replace(CAR, friction_cone="square"), 0.0)
+
+
+def test_the_leading_axle_transfer_applies_only_while_the_car_travels_toward_plus_y():
+    """`load_transfer_lead`: the same push moves load by that h / L while the car travels toward
+    body +y and by `load_transfer` toward -y; None leaves physics 7's loads bit for bit."""
+    import dataclasses
+
+    _, params = envs.make("CarCircle1")
+    loads = jnp.asarray(CAR._loads(), jnp.float32)
+    torque = params.gear_scale * CAR.executed_action(jnp.array([1.0, 1.0]))
+    data = hold("CarCircle1", (1.0, 1.0), 0.2).data
+    push = jnp.zeros_like(data.xfrc_applied).at[1, :2].set(rot2(data.qpos[2]) @ jnp.array(
+        [0.0, -0.05]))  # the ground pushes toward body -y: braking a car that travels +y
+
+    def axle(car, toward):
+        v = rot2(data.qpos[2]) @ jnp.array([0.0, toward])
+        d = data.replace(xfrc_applied=push, qvel=data.qvel.at[:2].set(v).at[2].set(0.0))
+        return float(car.contact_forces(d, torque, params, loads)[1][0])
+
+    lead = dataclasses.replace(CAR, load_transfer_lead=1.2)
+    static = float(loads[0])
+    assert axle(CAR, 0.5) - static == pytest.approx(0.5 * CAR.load_transfer * 0.05, rel=1e-4)
+    assert axle(lead, 0.5) - static == pytest.approx(0.5 * 1.2 * 0.05, rel=1e-4)
+    assert axle(lead, -0.5) == axle(CAR, -0.5)  # toward -y: today's transfer

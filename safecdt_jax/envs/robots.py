@@ -232,6 +232,12 @@ class CarRobot(Robot):
     # issue 48 (`experiments.car_fit --cone`, `experiments.car_variants`), not a physics
     # version.
     friction_cone: str = "elliptic"
+    # h / L while the car travels toward body +y (its drive axle leading); None: `load_transfer`
+    # both ways (physics 5-7). Toward +y native's car overshoots more at a turn's onset and
+    # regains speed more slowly, as a larger transfer would make it, while toward -y it keeps
+    # today's (docs/research/environment-fidelity.md, 2026-12-07 night). An experiment for
+    # issue 48, not a physics version.
+    load_transfer_lead: float | None = None
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
@@ -263,7 +269,10 @@ class CarRobot(Robot):
         static = loads * params.mass_scale
         weight = jnp.sum(static)
         push = -(rot.T @ data.xfrc_applied[1, :2])[1]
-        axle = jnp.clip(static[0] + 0.5 * self.load_transfer * push, 0.0, 0.5 * weight)
+        transfer = self.load_transfer
+        if self.load_transfer_lead is not None:  # travelling toward +y: the drive axle leads
+            transfer = jnp.where(v_pts[0, 1] + v_pts[1, 1] > 0, self.load_transfer_lead, transfer)
+        axle = jnp.clip(static[0] + 0.5 * transfer * push, 0.0, 0.5 * weight)
         normal = jnp.stack([axle, axle, weight - 2 * axle])
         rel = params.damping_scale * normal / static  # gains scale with load and damping
         sliding = jnp.array([self.sliding, self.sliding, self.caster_sliding])
