@@ -128,7 +128,8 @@ def native_metrics(plus_y: bool = False) -> dict[str, list[float]]:
     from experiments.sim2sim import native
 
     rows = []
-    runs = [(4 if n in dict(scripts()) else 8, a.tolist()) for n, a in scripts(plus_y)]
+    original = {name for name, _ in scripts()}
+    runs = [(4 if n in original else 8, a.tolist()) for n, a in scripts(plus_y)]
     for episodes, acts in [*runs, (8, SWITCHES)]:
         obs = native({"cmd": "trace", "task": "CarCircle1", "episodes": episodes,
                       "steps": len(acts), "seed": 0, "actions": acts})["obs"]

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
-from experiments.sim2sim import expert_policy, ours_episodes, pick_expert, target_task
+from experiments.sim2sim import ours_policy, pick_expert, target_task
 
 NATIVE = tuple(f"experiments/results/{name}.json" for name in (
     "sim2sim_goal3_cg", "sim2sim_physics6_experts_cc", "sim2sim_cc1_512_limit5",
@@ -80,8 +80,8 @@ def variant_rows(task: str, limit: float, episodes: int, variants: dict[str, dic
         variant = dataclasses.replace(robot, **fields)
         for run_in in (task, target_task(task)):
             for det in (True, False):
-                o = ours_episodes(run_in, expert_policy(snapshot_path(task), index, det),
-                                  episodes, 0, robot=variant)
+                o = ours_policy(task, snapshot_path(task), index, episodes, 0, det, run_in,
+                                robot=variant)
                 rows.append({"variant": name, "task": task, "limit": limit, "run_in": run_in,
                              "deterministic": det, "return": float(o["return"].mean()),
                              "cost": float(o["cost"].mean()),

@@ -40,7 +40,6 @@ import numpy as np
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
 
 DRIVE_BINS = (-1.01, 0.0, 0.5, 0.8, 0.95, 1.01)
-LIDAR_RANGE = 3.0
 
 
 def ours_recorded(task: str, snapshot_file: Path, index: int, episodes: int,
@@ -77,6 +76,8 @@ def drive_summary(rec: dict[str, np.ndarray], n_sensors: int, goal_task: bool = 
     """The statistics of the module docstring from one side's recorded episodes (the goal
     statistics only for a Goal task: `goal_task`); actions are clipped at `limit` (the Car's
     torque limit 0.02) and read in its units."""
+    from safecdt_jax.envs.goal import LIDAR_RANGE
+
     obs, a, met = rec["obs"], rec["actions"].astype(np.float64), rec["goal_met"].astype(bool)
     # Positive torques drive toward body -y, negative ones toward +y: the velocimeter's y
     # reads -speed when driving -y.
@@ -117,7 +118,8 @@ def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> 
 
     index = pick_expert(task, limit)
     robot = envs.make(task)[0].robot
-    n_sensors, limit = robot.n_sensors, getattr(robot, "torque_limit", 1.0)
+    n_sensors, torque = robot.n_sensors, getattr(robot, "torque_limit", 1.0)
+    goal_task = "Goal" in task
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         weights = Path(tmp) / "policy.npz"
@@ -127,10 +129,9 @@ def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> 
             t = native({"cmd": "policy", "task": task, "weights": str(weights),
                         "episodes": episodes, "seed": 0, "deterministic": det, "record": True,
                         **_cone(cone)})
-            goal_task = "Goal" in task
             rows.append({"policy": "mean" if det else "sampled",
-                         "ours": drive_summary(o, n_sensors, goal_task, limit),
-                         "theirs": drive_summary(t, n_sensors, goal_task, limit)})
+                         "ours": drive_summary(o, n_sensors, goal_task, torque),
+                         "theirs": drive_summary(t, n_sensors, goal_task, torque)})
     return rows
 
 

@@ -384,11 +384,13 @@ def expert_act(snapshot_file: Path, index: int, deterministic: bool):
 
 
 def ours_policy(task: str, snapshot_file: Path, index: int, episodes: int, seed: int,
-                deterministic: bool, run_in: str | None = None) -> dict[str, np.ndarray]:
+                deterministic: bool, run_in: str | None = None,
+                robot=None) -> dict[str, np.ndarray]:
     """Per-episode return, cost, goals and cost steps per term (`TERMS`, absent terms 0) of one
-    snapshot of `task`'s experts, run in task `run_in` (default `task`)."""
+    snapshot of `task`'s experts, run in task `run_in` (default `task`), with `robot` (a variant
+    of the task's robot) in place of its own if given."""
     return ours_episodes(run_in or task, expert_policy(snapshot_file, index, deterministic),
-                         episodes, seed)
+                         episodes, seed, robot=robot)
 
 
 def expert_policy(snapshot_file: Path, index: int, deterministic: bool):
