@@ -270,3 +270,69 @@ def test_car_variants_read_fields_and_fits_and_refuse_an_unknown_field(tmp_path)
                                 "cone": "pyramidal"}))
     assert fit_variant(path) == {"sliding": 1.0, "saturation_power": 2.0,
                                  "friction_cone": "pyramidal"}
+
+
+def test_car_fit_sideways_velocities_are_keyed_weighted_and_optional():
+    from experiments.car_fit import LATERAL, LATERAL_WEIGHT, STEPS, loss, metrics, scripts
+
+    n = len(scripts()) + 1
+    speed, yaw = np.full((n, STEPS), 0.5), np.zeros((n, STEPS))
+    assert not any(k.endswith(LATERAL) for k in metrics(speed, yaw))
+    m = metrics(speed, yaw, lateral=np.full((n, STEPS), 0.02))
+    sideways = [k for k in m if k.endswith(LATERAL)]
+    assert len(sideways) == len(scripts()) - 1  # every script but the random one
+    assert m["spin (1, -1)" + LATERAL] == pytest.approx([0.02])
+    off = dict(m) | {"spin (1, -1)" + LATERAL: [0.03]}
+    assert loss(off, m) == pytest.approx(LATERAL_WEIGHT * 0.01 / np.sqrt(
+        sum(len(v) for v in m.values())))
+
+
+def test_car_sysid_segments_read_heading_and_velocities_from_native_records():
+    from experiments.car_sysid import (
+        GYRO_Z,
+        MAGNETOMETER,
+        VELOCIMETER,
+        heading,
+        parse_data,
+        segments,
+    )
+
+    assert parse_data("CarGoal1:25:64,CarCircle1:5:128") == [("CarGoal1", 25.0, 64),
+                                                             ("CarCircle1", 5.0, 128)]
+    for bad in ("CarGoal1:25", "PointGoal1:25:64"):
+        with pytest.raises(SystemExit, match="--data"):
+            parse_data(bad)
+    steps = 60
+    psi = np.linspace(0.0, 12.0, steps)  # two turns round: the heading must unwrap
+    obs = np.zeros((2, steps, 40), np.float32)
+    obs[..., MAGNETOMETER], obs[..., MAGNETOMETER + 1] = -0.5 * np.sin(psi), -0.5 * np.cos(psi)
+    obs[..., VELOCIMETER] = np.arange(steps) * 0.001
+    obs[..., VELOCIMETER + 1] = -np.arange(steps) * 0.01
+    obs[..., GYRO_Z] = 0.3
+    np.testing.assert_allclose(heading(obs)[0], psi, atol=1e-5)
+    actions = np.broadcast_to(np.arange(steps, dtype=np.float32)[None, :, None], (2, steps, 2))
+    state, acts, target = segments(obs, actions, horizon=4, stride=25)
+    starts = [1, 26, 51]
+    assert state.shape == (6, 3) and acts.shape == (6, 4, 2) and target.shape == (6, 4, 3)
+    np.testing.assert_allclose(state[:3, 1], [-0.01 * t for t in starts], rtol=1e-6)
+    assert (state[:, 2] == np.float32(0.3)).all()
+    np.testing.assert_array_equal(acts[1, :, 0], [26, 27, 28, 29])  # the actions from the start
+    np.testing.assert_allclose(target[1, :, 1], [-0.27, -0.28, -0.29, -0.30], rtol=1e-5)
+    dpsi = 12.0 / (steps - 1)
+    np.testing.assert_allclose(target[1, :, 2], dpsi * np.arange(1, 5), atol=1e-4)
+
+
+def test_car_sysid_loss_is_zero_at_the_constants_that_made_the_data():
+    from experiments.car_sysid import SEARCHED, _program, current_constants, prediction_loss
+
+    truth = current_constants()
+    other = truth.copy()
+    other[SEARCHED.index("yaw_scrub")] *= 2
+    rng = np.random.default_rng(0)
+    state = np.stack([rng.uniform(-0.05, 0.05, 4), rng.uniform(-0.6, 0.6, 4),
+                      rng.uniform(-1, 1, 4)], -1).astype(np.float32)
+    acts = rng.choice([-1.0, 1.0], size=(4, 3, 2)).astype(np.float32)
+    made = np.asarray(_program(SEARCHED)(truth[None].astype(np.float32), state, acts))[0]
+    assert np.abs(made[:, -1, 2]).max() > 0.005  # the spin pulses turn the car
+    loss = prediction_loss(np.stack([truth, other]), SEARCHED, [(state, acts, made)])
+    assert loss.shape == (2, 1) and loss[0, 0] == 0.0 and loss[1, 0] > 1e-4

@@ -1,0 +1,218 @@
+"""Fit the Car's traction constants to native Safety-Gymnasium's own transitions under the
+experts' actions (issue 48).
+
+    python -m experiments.car_sysid [--data CarGoal1:25:64,CarCircle1:5:128] [--horizon 8]
+        [--segments 800] [--rounds 12] [--out experiments/results/car_sysid.json]
+
+`experiments.car_fit` fits the Car to scripted drives (held actions, straight/spin switching,
+turns and recoveries). The experts that make the data drive otherwise: the CarGoal1 expert's
+mean action flips between full straight and full spin nearly every step, in both travel
+directions. This fit asks the model for what those drives need: from native's state, under
+native's next actions, the next steps.
+
+Data: each `--data` TASK:LIMIT:EPISODES expert (`sim2sim.pick_expert`) in native
+Safety-Gymnasium, mean and sampled actions, each step's observation and action recorded
+(`benchmarks/peers/native.py` `policy` with `record`; cached, the same requests as
+`experiments.drive_stats`). Segments: every `STRIDE` steps of every episode, `--segments` of them
+drawn per expert and action mode; a segment starts from native's body velocity (velocimeter
+x, y, m/s) and yaw rate (gyro z, rad/s), replays the next `--horizon` actions in our bare Car
+(heading 0, at rest otherwise), and compares each step's body velocity and heading change
+(rad; native's from its magnetometer) with native's. The heading change rather than the yaw
+rate: native's chassis rattles on its contacts (its gyro z jumps by 0.6 rad/s step to step
+under these drives), and where the car goes follows the heading.
+
+Loss: the root-mean-square error per segment (velocities in m/s, heading changes x
+`HEADING_WEIGHT`), averaged per expert and action mode, then over them. Search: the
+cross-entropy method of `car_fit` over `car_fit.FIELDS`, `load_transfer_lead` and
+`saturation_power` from the `CarRobot` defaults. Also reported: the fitted and current
+constants' `car_fit` script loss over both travel directions (`--plus-y --lateral`'s targets),
+which the fit never sees. Writes JSON (in `car_fit`'s form, so `experiments.car_variants
+--fit NAME=PATH` runs the experts under it) and markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import functools
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.common import machine, markdown_table, write_json, write_markdown
+from experiments import car_fit
+
+STRIDE = 25  # steps between segment starts
+HEADING_WEIGHT = 2.0  # the heading change (rad) against velocities (m/s) in the loss
+SEARCHED = (*car_fit.FIELDS, "load_transfer_lead", "saturation_power")
+VELOCIMETER, GYRO_Z, MAGNETOMETER = 3, 8, 9  # Car observation dims (x, y of each)
+
+
+def parse_data(text: str) -> list[tuple[str, float, int]]:
+    """`TASK:LIMIT:EPISODES,...` -> [(task, limit, episodes)]; SystemExit naming a bad item."""
+    out = []
+    for item in filter(None, text.split(",")):
+        parts = item.split(":")
+        if len(parts) != 3 or not parts[0].startswith("Car"):
+            raise SystemExit(f"--data: {item!r} is not CarTASK:LIMIT:EPISODES")
+        out.append((parts[0], float(parts[1]), int(parts[2])))
+    return out
+
+
+def heading(obs: np.ndarray) -> np.ndarray:
+    """World heading (rad, unwrapped along the last-but-one axis) from the magnetometer's body
+    x, y readings of the world field (0, -0.5, 0): (-0.5 sin psi, -0.5 cos psi)."""
+    mx, my = obs[..., MAGNETOMETER], obs[..., MAGNETOMETER + 1]
+    return np.unwrap(np.arctan2(-mx, -my), axis=-1)
+
+
+def segments(obs: np.ndarray, actions: np.ndarray, horizon: int, stride: int = STRIDE):
+    """Segments of recorded episodes (`obs` [E, T, D] before each action, `actions` [E, T, 2]):
+    start states [n, 3] (body vx, vy in m/s, yaw rate rad/s at the start), the next `horizon`
+    actions [n, horizon, 2] and the targets [n, horizon, 3] (body vx, vy after each action, and
+    the heading change since the start, rad). Starts every `stride` steps from step 1."""
+    psi = heading(obs)
+    starts = np.arange(1, obs.shape[1] - horizon, stride)
+    state = obs[:, starts][..., [VELOCIMETER, VELOCIMETER + 1, GYRO_Z]]
+    acts = np.stack([actions[:, t:t + horizon] for t in starts], 1)
+    vel = np.stack([obs[:, t + 1:t + horizon + 1, VELOCIMETER:VELOCIMETER + 2]
+                    for t in starts], 1)
+    turn = np.stack([psi[:, t + 1:t + horizon + 1] - psi[:, t:t + 1] for t in starts], 1)
+    target = np.concatenate([vel, turn[..., None]], axis=-1)
+    n = len(starts) * obs.shape[0]
+    return (state.reshape(n, 3).astype(np.float32), acts.reshape(n, horizon, 2).astype(np.float32),
+            target.reshape(n, horizon, 3).astype(np.float32))
+
+
+def native_records(task: str, limit: float, episodes: int) -> dict[str, dict]:
+    """Native's recorded episodes of the task's expert, by action mode ("mean", "sampled")."""
+    from experiments.sim2sim import export_policy, native, pick_expert
+    from safecdt_jax.experts.collect import snapshot_path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        weights = Path(tmp) / "policy.npz"
+        export_policy(snapshot_path(task), pick_expert(task, limit), weights)
+        return {"mean" if det else "sampled": native(
+            {"cmd": "policy", "task": task, "weights": str(weights), "episodes": episodes,
+             "seed": 0, "deterministic": det, "record": True}) for det in (True, False)}
+
+
+@functools.cache
+def _program(fields: tuple[str, ...]):
+    """Jitted `(thetas [c, len(fields)], states [n, 3], actions [n, K, 2]) -> [c, n, K, 3]`:
+    each candidate's bare Car from each start state under the actions, per step its body vx,
+    vy and heading change."""
+    import jax
+    import jax.numpy as jnp
+    from mujoco import mjx
+
+    from safecdt_jax.envs.geometry import rot2
+    from safecdt_jax.envs.robots import CAR
+    from safecdt_jax.envs.types import EnvParams
+
+    model, params = mjx.put_model(CAR.mj_model), EnvParams()
+
+    def run(theta, state, acts):
+        car = dataclasses.replace(CAR, **{f: theta[i] for i, f in enumerate(fields)})
+        data = car.init_data(model, jnp.zeros(2), jnp.float32(0.0))
+        data = data.replace(qvel=data.qvel.at[:3].set(state))
+
+        def step(carry, action):
+            data, robot_state = car.physics(model, carry[0], action, params, carry[1],
+                                            jax.random.PRNGKey(0))  # the caster: no force
+            v = rot2(data.qpos[2]).T @ data.qvel[:2]
+            return (data, robot_state), jnp.stack([v[0], v[1], data.qpos[2]])
+
+        return jax.lax.scan(step, (data, car.init_state()), acts)[1]
+
+    per_segment = jax.vmap(run, in_axes=(None, 0, 0))
+    return jax.jit(jax.vmap(per_segment, in_axes=(0, None, None)))
+
+
+def prediction_loss(thetas: np.ndarray, fields: tuple[str, ...], data: list[tuple]) -> np.ndarray:
+    """Per candidate row of `thetas` and per dataset (start states, actions, targets) of
+    `data`: the mean over segments of the weighted RMS prediction error, [c, len(data)]."""
+    weight = np.array([1.0, 1.0, HEADING_WEIGHT], np.float32)
+    out = []
+    for state, acts, target in data:
+        pred = np.asarray(_program(fields)(thetas.astype(np.float32), state, acts))
+        err = (pred - target[None]) * weight
+        out.append(np.sqrt(np.mean(err ** 2, axis=(2, 3))).mean(-1))
+    return np.stack(out, axis=-1)
+
+
+def current_constants() -> np.ndarray:
+    """The `CarRobot` defaults of `SEARCHED`."""
+    from safecdt_jax.envs.robots import CAR
+
+    return np.array([car_fit.default_value(f) for f in SEARCHED[:-1]] + [CAR.saturation_power])
+
+
+def script_loss(theta: np.ndarray) -> float:
+    """`car_fit`'s script loss over both travel directions with sideways velocities."""
+    extra = ("load_transfer_lead",)
+    metrics = car_fit.evaluate(theta[None, :-1], float(theta[-1]), "elliptic", True, extra,
+                               True)[0]
+    return car_fit.loss(metrics, car_fit.native_metrics(True, True))
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", default="CarGoal1:25:64,CarCircle1:5:128")
+    ap.add_argument("--horizon", type=int, default=8)
+    ap.add_argument("--segments", type=int, default=800)
+    ap.add_argument("--rounds", type=int, default=12)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--out", type=Path, default=Path("experiments/results/car_sysid.json"))
+    args = ap.parse_args(argv)
+    if args.horizon < 1 or args.segments < 1:
+        raise SystemExit("--horizon and --segments must be positive")
+    rng = np.random.default_rng(args.seed)
+    data, names = [], []
+    for task, limit, episodes in parse_data(args.data):
+        for mode, rec in native_records(task, limit, episodes).items():
+            state, acts, target = segments(rec["obs"], rec["actions"], args.horizon)
+            pick = rng.permutation(len(state))[:args.segments]
+            data.append((state[pick], acts[pick], target[pick]))
+            names.append(f"{task} limit {limit:g}, {mode}")
+    bounds = car_fit.BOUNDS | car_fit.EXTRA_BOUNDS | {"saturation_power": (1.0, 20.0)}
+    lo, hi = (np.array([bounds[f][i] for f in SEARCHED]) for i in (0, 1))
+    start = current_constants()
+    (best_loss, best), history = car_fit.cross_entropy(
+        lambda th: prediction_loss(th, SEARCHED, data).mean(-1), start, lo, hi, args.rounds,
+        args.seed)
+    before, after = prediction_loss(np.stack([start, best]), SEARCHED, data)
+    scripts = [script_loss(start), script_loss(best)]
+    constants = dict(zip(SEARCHED, best.round(4).tolist(), strict=True))
+    power = constants.pop("saturation_power")
+    command = "python -m experiments.car_sysid " + " ".join(sys.argv[1:] if argv is None else argv)
+    write_json(args.out, {"command": command, "machine": machine(), "cone": "elliptic",
+                          "saturation_power": power, "constants": constants,
+                          "loss": best_loss, "default_loss": float(before.mean()),
+                          "history": history, "datasets": names,
+                          "per_dataset": {"current": before.tolist(), "fitted": after.tolist()},
+                          "script_loss": {"current": scripts[0], "fitted": scripts[1]},
+                          "horizon": args.horizon, "segments": args.segments})
+    rows = [[name, f"{b:.4f}", f"{a:.4f}"] for name, b, a in zip(names, before, after,
+                                                                   strict=True)]
+    rows.append(["mean", f"{before.mean():.4f}", f"{best_loss:.4f}"])
+    rows.append(["`car_fit` scripts, both directions (not fitted)", f"{scripts[0]:.4f}",
+                 f"{scripts[1]:.4f}"])
+    current = dict(zip(SEARCHED, start.round(4).tolist(), strict=True))
+    fitted = constants | {"saturation_power": power}
+    body = (f"Prediction loss ({args.horizon} steps from native's states under native's "
+            f"actions, {args.segments} segments per row; velocities m/s, heading change x"
+            f"{HEADING_WEIGHT:g} rad):\n\n"
+            + markdown_table(["native expert transitions", "current", "fitted"], rows)
+            + "\n\n" + markdown_table(["constant", "current", "fitted"],
+                                      [[f, f"{current[f]:g}", f"{fitted[f]:g}"]
+                                       for f in SEARCHED]))
+    write_markdown(args.out.with_suffix(".md"), "Car traction constants fitted to native "
+                   "transitions under the experts' actions", command, body)
+    print(args.out.with_suffix(".md").read_text())
+
+
+if __name__ == "__main__":
+    main()
