@@ -26,8 +26,10 @@ Loss: the root-mean-square error per segment (velocities in m/s, heading changes
 cross-entropy method of `car_fit` over `car_fit.FIELDS`, `load_transfer_lead` and
 `saturation_power` from the `CarRobot` defaults. Also reported: the fitted and current
 constants' `car_fit` script loss over both travel directions (`--plus-y --lateral`'s targets),
-which the fit never sees. Writes JSON (in `car_fit`'s form, so `experiments.car_variants
---fit NAME=PATH` runs the experts under it) and markdown.
+which the fit never sees, and `pulse_response`: the heading change after a single spin pulse
+by travel direction, the sharpness of the answer that the experts' driving is made of. Writes
+JSON (in `car_fit`'s form, so `experiments.car_variants --fit NAME=PATH` runs the experts
+under it) and markdown.
 """
 
 from __future__ import annotations
@@ -143,6 +145,25 @@ def prediction_loss(thetas: np.ndarray, fields: tuple[str, ...], data: list[tupl
     return np.stack(out, axis=-1)
 
 
+PULSES = ("toward +y", "toward -y", "near rest")  # a spin pulse's travel direction
+
+
+def pulse_response(state: np.ndarray, acts: np.ndarray, turn: np.ndarray) -> dict[str, float]:
+    """The mean heading change (rad) `turn` [n] at the horizon after segments whose first
+    action is a spin pulse (the executed torques opposite and near their limit), signed by the
+    pulse's direction, per `PULSES` class of the start's body velocity (toward +y: vy > 0.1 m/s,
+    toward -y: vy < -0.1, near rest otherwise): how sharply the car answers one pulse."""
+    from safecdt_jax.envs.robots import CAR
+
+    executed = np.clip(acts[:, 0], -CAR.torque_limit, CAR.torque_limit) / CAR.torque_limit
+    spin = np.abs(executed[:, 0] - executed[:, 1]) > 1.5
+    signed = turn * np.sign(executed[:, 0] - executed[:, 1])
+    vy = state[:, 1]
+    classes = {"toward +y": vy > 0.1, "toward -y": vy < -0.1, "near rest": np.abs(vy) <= 0.1}
+    return {name: float(signed[spin & m].mean()) if (spin & m).sum() >= 10 else float("nan")
+            for name, m in classes.items()}
+
+
 def current_constants() -> np.ndarray:
     """The `CarRobot` defaults of `SEARCHED`."""
     from safecdt_jax.envs.robots import CAR
@@ -184,6 +205,13 @@ def main(argv: list[str] | None = None) -> None:
         lambda th: prediction_loss(th, SEARCHED, data).mean(-1), start, lo, hi, args.rounds,
         args.seed)
     before, after = prediction_loss(np.stack([start, best]), SEARCHED, data)
+    pulses = []
+    for name, (state, acts, target) in zip(names, data, strict=True):
+        pred = np.asarray(_program(SEARCHED)(np.stack([start, best]).astype(np.float32), state,
+                                             acts))
+        pulses.append({"data": name, "native": pulse_response(state, acts, target[:, -1, 2]),
+                       "current": pulse_response(state, acts, pred[0, :, -1, 2]),
+                       "fitted": pulse_response(state, acts, pred[1, :, -1, 2])})
     scripts = [script_loss(start), script_loss(best)]
     constants = dict(zip(SEARCHED, best.round(4).tolist(), strict=True))
     power = constants.pop("saturation_power")
@@ -194,6 +222,7 @@ def main(argv: list[str] | None = None) -> None:
                           "history": history, "datasets": names,
                           "per_dataset": {"current": before.tolist(), "fitted": after.tolist()},
                           "script_loss": {"current": scripts[0], "fitted": scripts[1]},
+                          "pulses": pulses,
                           "horizon": args.horizon, "segments": args.segments})
     rows = [[name, f"{b:.4f}", f"{a:.4f}"] for name, b, a in zip(names, before, after,
                                                                    strict=True)]
@@ -209,6 +238,12 @@ def main(argv: list[str] | None = None) -> None:
             + "\n\n" + markdown_table(["constant", "current", "fitted"],
                                       [[f, f"{current[f]:g}", f"{fitted[f]:g}"]
                                        for f in SEARCHED]))
+    body += (f"\n\nHeading change (rad) {args.horizon} steps after a spin pulse, signed by "
+             "the pulse, by the travel direction at its start (native / current / fitted):\n\n"
+             + markdown_table(["native expert transitions", *PULSES], [
+                 [r["data"], *(" / ".join(f"{r[side][c]:.3f}" for side in
+                                          ("native", "current", "fitted")) for c in PULSES)]
+                 for r in pulses]))
     write_markdown(args.out.with_suffix(".md"), "Car traction constants fitted to native "
                    "transitions under the experts' actions", command, body)
     print(args.out.with_suffix(".md").read_text())

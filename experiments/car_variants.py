@@ -2,7 +2,8 @@
 
     python -m experiments.car_variants [--tasks CarGoal1:25,CarCircle1:5] [--episodes 64]
         [--variant NAME=FIELD:VALUE,FIELD:VALUE ...] [--fit NAME=car_fit_result.json ...]
-        [--native experiments/results/sim2sim_goal3_cg.json ...]
+        [--native experiments/results/sim2sim_goal3_cg.json ...] [--on car_sysid.json]
+        [--cells source,target] [--modes mean,sampled]
         [--out experiments/results/car_variants.json]
 
 A candidate Car model (other `CarRobot` constants, another `friction_cone`) is only worth a
@@ -13,7 +14,10 @@ level-2 target, mean and sampled actions, `--episodes` episodes on the same keys
 variant: physics as it is ("current"), each `--variant` (fields and values) and each `--fit`
 (the constants, cone and saturation power of an `experiments.car_fit` result). The native
 columns are read from sim2sim transfer results (`--native`, rows with the same expert limit,
-task and action mode), so nothing native reruns. Our simulator only; writes JSON and markdown.
+task and action mode), so nothing native reruns. `--on` applies every `--variant` on top of a
+fit's constants; `--cells` and `--modes` pick the run-in tasks and action modes (the rare
+CarCircle1 escapes want hundreds of episodes per cell). Our simulator only; writes JSON and
+markdown.
 """
 
 from __future__ import annotations
@@ -69,8 +73,11 @@ def native_rows(paths) -> dict[tuple, dict]:
     return out
 
 
-def variant_rows(task: str, limit: float, episodes: int, variants: dict[str, dict]) -> list[dict]:
-    """Per variant, run-in task and action mode: our mean return, cost, median cost, goals."""
+def variant_rows(task: str, limit: float, episodes: int, variants: dict[str, dict],
+                 cells: tuple[str, ...] = ("source", "target"),
+                 modes: tuple[str, ...] = ("mean", "sampled")) -> list[dict]:
+    """Per variant, run-in task (`cells`: the source task, its level-2 target) and action mode
+    (`modes`): our mean return, cost, median cost, goals."""
     from safecdt_jax import envs
     from safecdt_jax.experts.collect import snapshot_path
 
@@ -78,8 +85,8 @@ def variant_rows(task: str, limit: float, episodes: int, variants: dict[str, dic
     rows = []
     for name, fields in variants.items():
         variant = dataclasses.replace(robot, **fields)
-        for run_in in (task, target_task(task)):
-            for det in (True, False):
+        for run_in in [{"source": task, "target": target_task(task)}[c] for c in cells]:
+            for det in [mode == "mean" for mode in modes]:
                 o = ours_policy(task, snapshot_path(task), index, episodes, 0, det, run_in,
                                 robot=variant)
                 rows.append({"variant": name, "task": task, "limit": limit, "run_in": run_in,
@@ -115,10 +122,19 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--variant", action="append", default=[])
     ap.add_argument("--fit", action="append", default=[], metavar="NAME=PATH")
     ap.add_argument("--native", action="append", default=[])
+    ap.add_argument("--on", type=Path, default=None, metavar="PATH",
+                    help="a car_fit / car_sysid result every --variant is applied on top of")
+    ap.add_argument("--cells", default="source,target", help="source, target or both")
+    ap.add_argument("--modes", default="mean,sampled", help="mean, sampled or both")
     ap.add_argument("--out", type=Path, default=Path("experiments/results/car_variants.json"))
     args = ap.parse_args(argv)
+    cells, modes = tuple(args.cells.split(",")), tuple(args.modes.split(","))
+    if not set(cells) <= {"source", "target"} or not set(modes) <= {"mean", "sampled"}:
+        raise SystemExit(f"--cells from source,target and --modes from mean,sampled; got "
+                         f"{args.cells!r}, {args.modes!r}")
+    base = fit_variant(args.on) if args.on else {}
     variants = {"current": {}}
-    variants |= dict(parse_variant(v) for v in args.variant)
+    variants |= {name: base | fields for name, fields in map(parse_variant, args.variant)}
     for item in args.fit:
         name, _, path = item.partition("=")
         variants[name] = fit_variant(Path(path))
@@ -127,7 +143,7 @@ def main(argv: list[str] | None = None) -> None:
         task, _, limit = spec.partition(":")
         if not task.startswith("Car"):
             raise SystemExit(f"--tasks: Car tasks only, got {task}")
-        rows += variant_rows(task, float(limit), args.episodes, variants)
+        rows += variant_rows(task, float(limit), args.episodes, variants, cells, modes)
     native = native_rows(args.native or NATIVE)
     command = "python -m experiments.car_variants " + " ".join(
         sys.argv[1:] if argv is None else argv)

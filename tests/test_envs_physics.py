@@ -330,3 +330,26 @@ def test_the_leading_axle_transfer_applies_only_while_the_car_travels_toward_plu
     assert axle(CAR, 0.5) - static == pytest.approx(0.5 * CAR.load_transfer * 0.05, rel=1e-4)
     assert axle(lead, 0.5) - static == pytest.approx(0.5 * 1.2 * 0.05, rel=1e-4)
     assert axle(lead, -0.5) == axle(CAR, -0.5)  # toward -y: today's transfer
+
+
+def test_load_jitter_draws_grip_per_step_from_the_key_and_only_under_drive():
+    """`load_jitter`: 0 leaves physics 7 bit for bit; otherwise the same key gives the same
+    step, another key another one, and a car without torque is not shaken."""
+    import dataclasses
+
+    env, params = envs.make("CarCircle1")
+    state = hold("CarCircle1", (1.0, -1.0), 0.2)  # spinning: the wheels slide at their limit
+    shaken = dataclasses.replace(CAR, load_jitter=0.3)
+
+    def step(car, action, key):
+        data, _ = car.physics(env.model, state.data, jnp.asarray(action, jnp.float32), params,
+                              state.robot, key)
+        return np.asarray(data.qvel[:3])
+
+    k1, k2 = jax.random.PRNGKey(1), jax.random.PRNGKey(2)
+    np.testing.assert_array_equal(step(dataclasses.replace(CAR, load_jitter=0.0),
+                                       (1.0, -1.0), k1), step(CAR, (1.0, -1.0), k1))
+    np.testing.assert_array_equal(step(shaken, (1.0, -1.0), k1), step(shaken, (1.0, -1.0), k1))
+    assert np.abs(step(shaken, (1.0, -1.0), k1) - step(shaken, (1.0, -1.0), k2))[2] > 1e-4
+    np.testing.assert_allclose(step(shaken, (0.0, 0.0), k1), step(CAR, (0.0, 0.0), k1),
+                               atol=1e-7)

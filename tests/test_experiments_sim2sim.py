@@ -259,7 +259,7 @@ def test_recovery_and_car_fit_scripts_cover_both_travel_directions():
 def test_car_variants_read_fields_and_fits_and_refuse_an_unknown_field(tmp_path):
     import json
 
-    from experiments.car_variants import fit_variant, parse_variant
+    from experiments.car_variants import fit_variant, main, parse_variant
 
     assert parse_variant("pyr=friction_cone:pyramidal,sliding:0.9") == (
         "pyr", {"friction_cone": "pyramidal", "sliding": 0.9})
@@ -270,6 +270,9 @@ def test_car_variants_read_fields_and_fits_and_refuse_an_unknown_field(tmp_path)
                                 "cone": "pyramidal"}))
     assert fit_variant(path) == {"sliding": 1.0, "saturation_power": 2.0,
                                  "friction_cone": "pyramidal"}
+    for bad in (["--cells", "middle"], ["--modes", "greedy"]):
+        with pytest.raises(SystemExit, match="--cells from source,target"):
+            main([*bad, "--out", str(tmp_path / "out.json")])
 
 
 def test_car_fit_sideways_velocities_are_keyed_weighted_and_optional():
@@ -336,3 +339,20 @@ def test_car_sysid_loss_is_zero_at_the_constants_that_made_the_data():
     assert np.abs(made[:, -1, 2]).max() > 0.005  # the spin pulses turn the car
     loss = prediction_loss(np.stack([truth, other]), SEARCHED, [(state, acts, made)])
     assert loss.shape == (2, 1) and loss[0, 0] == 0.0 and loss[1, 0] > 1e-4
+
+
+def test_car_sysid_pulse_response_signs_spin_pulses_by_direction_and_skips_the_rest():
+    from experiments.car_sysid import pulse_response
+
+    n = 40
+    state = np.zeros((n, 3), np.float32)
+    state[:10, 1], state[10:20, 1], state[30:, 1] = 0.5, -0.5, 0.5
+    acts = np.zeros((n, 2, 2), np.float32)
+    acts[:20, 0] = [1.0, -1.0]  # a spin pulse (past the 0.02 torque clip)
+    acts[20:30, 0] = [-0.02, 0.02]  # the other way, from rest
+    acts[30:, 0] = [1.0, 1.0]  # straight: not a pulse
+    turn = np.where(np.arange(n) < 20, 0.1, -0.2).astype(np.float32)
+    turn[30:] = 5.0
+    out = pulse_response(state, acts, turn)
+    assert out == pytest.approx({"toward +y": 0.1, "toward -y": 0.1, "near rest": 0.2})
+    assert np.isnan(pulse_response(state[:5], acts[:5], turn[:5])["toward -y"])

@@ -238,6 +238,12 @@ class CarRobot(Robot):
     # today's (docs/research/environment-fidelity.md, 2026-12-07 night). An experiment for
     # issue 48, not a physics version.
     load_transfer_lead: float | None = None
+    # Std of each contact's relative normal-load jitter per env step at full drive (scaled by
+    # the step's drive level, as `chatter`): native's chassis rattles on its three soft
+    # contacts, its gyro z jumping by 0.03 rad/s (straight) to 0.16 (spin) step to step at full
+    # torque and not at half, which a planar body's loads cannot. 0: none (physics 5-7). An
+    # experiment for issue 48, not a physics version.
+    load_jitter: float = 0.0
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
@@ -256,12 +262,14 @@ class CarRobot(Robot):
         return v_body[None, :] + data.qvel[2] * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
 
     def contact_forces(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
-                       loads: jax.Array) -> tuple[jax.Array, jax.Array]:
+                       loads: jax.Array, jitter: jax.Array | None = None
+                       ) -> tuple[jax.Array, jax.Array]:
         """Body-frame ground forces (N) [3, 2] (x lateral, y longitudinal; positive y toward
         the rear) on left wheel, right wheel and caster, and their normal loads (N) [3].
 
         `data.xfrc_applied` holds the previous substep's force (zero at reset): its body-frame
-        longitudinal part sets the load transfer.
+        longitudinal part sets the load transfer. `jitter` [3] (optional): factors on the
+        friction limits (`load_jitter`).
         """
         rot = rot2(data.qpos[2])
         v_pts = self.contact_velocities(data)
@@ -277,6 +285,8 @@ class CarRobot(Robot):
         rel = params.damping_scale * normal / static  # gains scale with load and damping
         sliding = jnp.array([self.sliding, self.sliding, self.caster_sliding])
         limit = sliding * self.friction * params.friction_scale * normal
+        if jitter is not None:  # a rattling contact's grip comes and goes; its slip gains stay
+            limit = limit * jitter
         c_w = self.wheel_damping * params.damping_scale
         # Positive torque drives toward body -y (the reference's sign convention).
         rim = -self.wheel_radius * torque / c_w
@@ -328,10 +338,11 @@ class CarRobot(Robot):
         return limit[:, None] * jnp.stack([-lat, long], axis=-1) / n[:, None]
 
     def traction(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
-                 loads: jax.Array, com: jax.Array) -> jax.Array:
+                 loads: jax.Array, com: jax.Array, jitter: jax.Array | None = None
+                 ) -> jax.Array:
         """World-frame force and torque [6] on the chassis COM from the `contact_forces` and
         the yaw scrub."""
-        forces, _ = self.contact_forces(data, torque, params, loads)
+        forces, _ = self.contact_forces(data, torque, params, loads, jitter)
         lever = jnp.array(self.contacts) - com[None, :]
         tz = jnp.sum(lever[:, 0] * forces[:, 1] - lever[:, 1] * forces[:, 0])
         # Scrub is contact friction: it scales with mu (as the reference's torsional friction).
@@ -353,9 +364,15 @@ class CarRobot(Robot):
         torque = params.gear_scale * self.executed_action(action)
         loads = jnp.asarray(self._loads(), jnp.float32)
         com = jnp.asarray(self.mj_model.body_ipos[1][:2], jnp.float32)
+        jitter = None
+        # (a traced jitter, as the experiments' searches pass, always draws)
+        if isinstance(self.load_jitter, jax.Array) or self.load_jitter > 0:
+            level = jnp.mean(jnp.abs(torque)) / self.torque_limit
+            noise = jax.random.normal(jax.random.fold_in(key, 1), (3,))
+            jitter = jnp.maximum(1.0 + self.load_jitter * level * noise, 0.0)
 
         def push(d):
-            f = self.traction(d, torque, params, loads, com)
+            f = self.traction(d, torque, params, loads, com, jitter)
             return d.replace(xfrc_applied=d.xfrc_applied.at[1].set(f))
 
         data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, push(d)), data)
