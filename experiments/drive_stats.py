@@ -17,7 +17,9 @@ both simulators on each side's own layouts (the native side records through the 
   at the torque limit;
 - the speed per drive bin, the part of the speed that the dynamics decide for a given
   action: if the bins agree and the marginals do not, the policy acts differently (what it
-  sees differs); if the bins differ, the car answers the same action differently.
+  sees differs); if the bins differ, the car answers the same action differently;
+- (Circle tasks) how the laps meet the walls (`lap_summary`), from positions that the circle
+  lidar and the magnetometer give (`circle_positions`).
 Then (`recovery`) a turn and the recovery from it, open loop from rest in both simulators, in
 each travel direction: 100 steps straight, 30 of a one-wheel turn or a spin, 100 straight
 again (native: 8 layouts; ours: the floor is flat, 1). Per script the peak |yaw rate| at the
@@ -71,11 +73,50 @@ def ours_recorded(task: str, snapshot_file: Path, index: int, episodes: int,
             "goal_met": np.asarray(goal_met), "cost": np.asarray(cost).sum(1)}
 
 
+def circle_positions(obs: np.ndarray, n_sensors: int) -> tuple[np.ndarray, np.ndarray]:
+    """World x, y (m) of the agent from a Circle task's observations [..., T, D]: the circle
+    lidar's strongest bin and its aliased neighbour give the origin's body-frame distance and
+    bearing (`envs.geometry.pseudo_lidar`, 6 m range), the magnetometer the heading. Exact
+    while the origin is in range."""
+    from experiments.car_sysid import heading
+    from safecdt_jax.envs.circle import LIDAR_RANGE
+
+    lidar = obs[..., n_sensors:n_sensors + 16]
+    top = lidar.argmax(-1)
+    s = np.take_along_axis(lidar, top[..., None], -1)[..., 0]
+    after = np.take_along_axis(lidar, ((top + 1) % 16)[..., None], -1)[..., 0]
+    theta = (top + np.where(s > 0, after / np.maximum(s, 1e-9), 0.0)) * 2 * np.pi / 16
+    dist, psi = LIDAR_RANGE * (1.0 - s), heading(obs)
+    rx, ry = dist * np.cos(theta), dist * np.sin(theta)  # the origin, in the body frame
+    return (-(np.cos(psi) * rx - np.sin(psi) * ry), -(np.sin(psi) * rx + np.cos(psi) * ry))
+
+
+def lap_summary(obs: np.ndarray, n_sensors: int, boundary: float,
+                dt: float = 0.02) -> dict[str, float]:
+    """How a Circle episode's laps meet the walls at |x| = `boundary` (m), from
+    `circle_positions`: steps beyond per episode, wall entries per episode, episodes with one,
+    the share of steps within 0.125 m inside the wall, the mean distance from the origin
+    (steps 100 on), the speed toward the wall at an entry (m/s) and the median of each
+    episode's largest |x|."""
+    x, y = circle_positions(obs, n_sensors)
+    ax = np.abs(x)
+    out = ax > boundary
+    entry = out[:, 1:] & ~out[:, :-1]
+    toward = np.diff(ax, axis=1) / dt
+    return {"steps_beyond": float(out.sum(1).mean()), "wall_entries": float(entry.sum(1).mean()),
+            "episodes_with_entry": float((entry.sum(1) > 0).sum()),
+            "near_wall_share": float(((ax > boundary - 0.125) & ~out).mean()),
+            "radius": float(np.hypot(x, y)[:, min(100, x.shape[1] // 2):].mean()),
+            "entry_speed": float(toward[entry].mean()) if entry.any() else float("nan"),
+            "median_max_abs_x": float(np.median(ax.max(1)))}
+
+
 def drive_summary(rec: dict[str, np.ndarray], n_sensors: int, goal_task: bool = True,
-                  limit: float = 1.0) -> dict[str, float | list]:
+                  limit: float = 1.0, boundary: float | None = None) -> dict[str, float | list]:
     """The statistics of the module docstring from one side's recorded episodes (the goal
-    statistics only for a Goal task: `goal_task`); actions are clipped at `limit` (the Car's
-    torque limit 0.02) and read in its units."""
+    statistics only for a Goal task: `goal_task`; the walls' `lap_summary` when a Circle
+    task's `boundary` is given); actions are clipped at `limit` (the Car's torque limit 0.02)
+    and read in its units."""
     from safecdt_jax.envs.goal import LIDAR_RANGE
 
     obs, a, met = rec["obs"], rec["actions"].astype(np.float64), rec["goal_met"].astype(bool)
@@ -103,6 +144,8 @@ def drive_summary(rec: dict[str, np.ndarray], n_sensors: int, goal_task: bool = 
             "abs_yaw_rate": float(yaw.mean()), "drive": float(drive.mean()),
             "abs_turn": float(turn.mean()), "saturated": float((np.abs(a) >= 0.999).mean())}
     idx = np.digitize(drive, DRIVE_BINS) - 1
+    if boundary is not None:
+        out |= lap_summary(obs, n_sensors, boundary)
     out["speed_by_drive"] = [float(speed[idx == i].mean()) if (idx == i).sum() >= 200 else None
                              for i in range(len(DRIVE_BINS) - 1)]
     out["share_by_drive"] = [float((idx == i).mean()) for i in range(len(DRIVE_BINS) - 1)]
@@ -117,7 +160,9 @@ def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> 
     from safecdt_jax.experts.collect import snapshot_path
 
     index = pick_expert(task, limit)
-    robot = envs.make(task)[0].robot
+    env, params = envs.make(task)
+    robot = env.robot
+    boundary = float(params.boundary) if "Circle" in task else None
     n_sensors, torque = robot.n_sensors, getattr(robot, "torque_limit", 1.0)
     goal_task = "Goal" in task
     rows = []
@@ -130,8 +175,8 @@ def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> 
                         "episodes": episodes, "seed": 0, "deterministic": det, "record": True,
                         **_cone(cone)})
             rows.append({"policy": "mean" if det else "sampled",
-                         "ours": drive_summary(o, n_sensors, goal_task, torque),
-                         "theirs": drive_summary(t, n_sensors, goal_task, torque)})
+                         "ours": drive_summary(o, n_sensors, goal_task, torque, boundary),
+                         "theirs": drive_summary(t, n_sensors, goal_task, torque, boundary)})
     return rows
 
 

@@ -356,3 +356,25 @@ def test_car_sysid_pulse_response_signs_spin_pulses_by_direction_and_skips_the_r
     out = pulse_response(state, acts, turn)
     assert out == pytest.approx({"toward +y": 0.1, "toward -y": 0.1, "near rest": 0.2})
     assert np.isnan(pulse_response(state[:5], acts[:5], turn[:5])["toward -y"])
+
+
+def test_circle_positions_come_back_from_the_lidar_and_magnetometer_and_laps_count_entries():
+    import jax
+
+    from experiments.drive_stats import circle_positions, lap_summary
+    from safecdt_jax.envs.rollout import scan_episode, uniform_policy
+
+    env, params = envs.make("CarCircle1")
+    _, (obs, xy) = scan_episode(env, params, jax.random.PRNGKey(3), uniform_policy,
+                                lambda s: (s.obs, s.data.qpos[:2]), 40)
+    x, y = circle_positions(np.asarray(obs)[None], env.robot.n_sensors)
+    np.testing.assert_allclose(np.stack([x[0], y[0]], -1), np.asarray(xy), atol=2e-3)
+    # a synthetic episode: one crossing of the wall at x = 1.125, 3 steps beyond it
+    xs = np.array([[1.0, 1.1, 1.15, 1.2, 1.15, 1.1, 1.0]])
+    lidar_obs = np.zeros((1, 7, env.robot.n_sensors + 16), np.float32)
+    lidar_obs[..., 10] = -0.5  # heading 0: the magnetometer reads (0, -0.5)
+    lidar_obs[..., env.robot.n_sensors + 8] = 1.0 - xs / 6.0  # the origin straight behind
+    laps = lap_summary(lidar_obs, env.robot.n_sensors, 1.125)
+    assert laps["steps_beyond"] == 3 and laps["wall_entries"] == 1
+    assert laps["entry_speed"] == pytest.approx(0.05 / 0.02, rel=1e-3)
+    assert laps["median_max_abs_x"] == pytest.approx(1.2, rel=1e-5)
