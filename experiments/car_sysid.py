@@ -2,7 +2,8 @@
 experts' actions (issue 48).
 
     python -m experiments.car_sysid [--data CarGoal1:25:64,CarCircle1:5:128] [--horizon 8]
-        [--segments 800] [--rounds 12] [--out experiments/results/car_sysid.json]
+        [--segments 800] [--rounds 12] [--bias-weight 0]
+        [--out experiments/results/car_sysid.json]
 
 `experiments.car_fit` fits the Car to scripted drives (held actions, straight/spin switching,
 turns and recoveries). The experts that make the data drive otherwise: the CarGoal1 expert's
@@ -22,7 +23,9 @@ rate: native's chassis rattles on its contacts (its gyro z jumps by 0.6 rad/s st
 under these drives), and where the car goes follows the heading.
 
 Loss: the root-mean-square error per segment (velocities in m/s, heading changes x
-`HEADING_WEIGHT`), averaged per expert and action mode, then over them. Search: the
+`HEADING_WEIGHT`), averaged per expert and action mode, plus `--bias-weight` times the error of
+the mean heading change (the curvature the expert's laps are made of), then averaged over
+them. Search: the
 cross-entropy method of `car_fit` over `car_fit.FIELDS`, `load_transfer_lead` and
 `saturation_power` from the `CarRobot` defaults. Also reported: the fitted and current
 constants' `car_fit` script loss over both travel directions (`--plus-y --lateral`'s targets),
@@ -133,15 +136,19 @@ def _program(fields: tuple[str, ...]):
     return jax.jit(jax.vmap(per_segment, in_axes=(0, None, None)))
 
 
-def prediction_loss(thetas: np.ndarray, fields: tuple[str, ...], data: list[tuple]) -> np.ndarray:
+def prediction_loss(thetas: np.ndarray, fields: tuple[str, ...], data: list[tuple],
+                    bias_weight: float = 0.0) -> np.ndarray:
     """Per candidate row of `thetas` and per dataset (start states, actions, targets) of
-    `data`: the mean over segments of the weighted RMS prediction error, [c, len(data)]."""
+    `data`: the mean over segments of the weighted RMS prediction error, plus `bias_weight`
+    times the error of the mean heading change at the horizon (rad): the RMS is ruled by each
+    segment's scatter, while how tight a loop the expert drives is the mean. [c, len(data)]."""
     weight = np.array([1.0, 1.0, HEADING_WEIGHT], np.float32)
     out = []
     for state, acts, target in data:
         pred = np.asarray(_program(fields)(thetas.astype(np.float32), state, acts))
         err = (pred - target[None]) * weight
-        out.append(np.sqrt(np.mean(err ** 2, axis=(2, 3))).mean(-1))
+        bias = np.abs(pred[:, :, -1, 2].mean(-1) - target[:, -1, 2].mean())
+        out.append(np.sqrt(np.mean(err ** 2, axis=(2, 3))).mean(-1) + bias_weight * bias)
     return np.stack(out, axis=-1)
 
 
@@ -186,6 +193,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--segments", type=int, default=800)
     ap.add_argument("--rounds", type=int, default=12)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--bias-weight", type=float, default=0.0,
+                    help="weight of the mean heading change's error (prediction_loss)")
     ap.add_argument("--out", type=Path, default=Path("experiments/results/car_sysid.json"))
     args = ap.parse_args(argv)
     if args.horizon < 1 or args.segments < 1:
@@ -202,16 +211,19 @@ def main(argv: list[str] | None = None) -> None:
     lo, hi = (np.array([bounds[f][i] for f in SEARCHED]) for i in (0, 1))
     start = current_constants()
     (best_loss, best), history = car_fit.cross_entropy(
-        lambda th: prediction_loss(th, SEARCHED, data).mean(-1), start, lo, hi, args.rounds,
-        args.seed)
-    before, after = prediction_loss(np.stack([start, best]), SEARCHED, data)
-    pulses = []
+        lambda th: prediction_loss(th, SEARCHED, data, args.bias_weight).mean(-1), start, lo,
+        hi, args.rounds, args.seed)
+    before, after = prediction_loss(np.stack([start, best]), SEARCHED, data, args.bias_weight)
+    pulses, mean_turns = [], []
     for name, (state, acts, target) in zip(names, data, strict=True):
         pred = np.asarray(_program(SEARCHED)(np.stack([start, best]).astype(np.float32), state,
                                              acts))
         pulses.append({"data": name, "native": pulse_response(state, acts, target[:, -1, 2]),
                        "current": pulse_response(state, acts, pred[0, :, -1, 2]),
                        "fitted": pulse_response(state, acts, pred[1, :, -1, 2])})
+        mean_turns.append({"data": name, "native": float(target[:, -1, 2].mean()),
+                           "current": float(pred[0, :, -1, 2].mean()),
+                           "fitted": float(pred[1, :, -1, 2].mean())})
     scripts = [script_loss(start), script_loss(best)]
     constants = dict(zip(SEARCHED, best.round(4).tolist(), strict=True))
     power = constants.pop("saturation_power")
@@ -223,7 +235,9 @@ def main(argv: list[str] | None = None) -> None:
                           "per_dataset": {"current": before.tolist(), "fitted": after.tolist()},
                           "script_loss": {"current": scripts[0], "fitted": scripts[1]},
                           "pulses": pulses,
-                          "horizon": args.horizon, "segments": args.segments})
+                          "horizon": args.horizon, "segments": args.segments,
+                          "bias_weight": args.bias_weight,
+                          "mean_turn": mean_turns})
     rows = [[name, f"{b:.4f}", f"{a:.4f}"] for name, b, a in zip(names, before, after,
                                                                    strict=True)]
     rows.append(["mean", f"{before.mean():.4f}", f"{best_loss:.4f}"])
@@ -244,6 +258,10 @@ def main(argv: list[str] | None = None) -> None:
                  [r["data"], *(" / ".join(f"{r[side][c]:.3f}" for side in
                                           ("native", "current", "fitted")) for c in PULSES)]
                  for r in pulses]))
+    body += (f"\n\nMean heading change (rad) {args.horizon} steps on, over all segments "
+             "(native / current / fitted): " + "; ".join(
+                 f"{m['data']} {m['native']:.4f} / {m['current']:.4f} / {m['fitted']:.4f}"
+                 for m in mean_turns) + ".")
     write_markdown(args.out.with_suffix(".md"), "Car traction constants fitted to native "
                    "transitions under the experts' actions", command, body)
     print(args.out.with_suffix(".md").read_text())

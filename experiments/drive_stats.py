@@ -92,12 +92,16 @@ def circle_positions(obs: np.ndarray, n_sensors: int) -> tuple[np.ndarray, np.nd
 
 
 def lap_summary(obs: np.ndarray, n_sensors: int, boundary: float,
-                dt: float = 0.02) -> dict[str, float]:
+                dt: float) -> dict[str, float]:
     """How a Circle episode's laps meet the walls at |x| = `boundary` (m), from
     `circle_positions`: steps beyond per episode, wall entries per episode, episodes with one,
     the share of steps within 0.125 m inside the wall, the mean distance from the origin
     (steps 100 on), the speed toward the wall at an entry (m/s) and the median of each
-    episode's largest |x|."""
+    episode's largest |x|; `dt`: seconds per env step. Also the laps' curvature: the path
+    speed (m/s) and net heading rate (rad/s, from the magnetometer) from step 100 on, and their
+    ratio, the radius (m) the car curves at."""
+    from experiments.car_sysid import heading
+
     x, y = circle_positions(obs, n_sensors)
     ax = np.abs(x)
     out = ax > boundary
@@ -108,15 +112,29 @@ def lap_summary(obs: np.ndarray, n_sensors: int, boundary: float,
             "near_wall_share": float(((ax > boundary - 0.125) & ~out).mean()),
             "radius": float(np.hypot(x, y)[:, min(100, x.shape[1] // 2):].mean()),
             "entry_speed": float(toward[entry].mean()) if entry.any() else float("nan"),
-            "median_max_abs_x": float(np.median(ax.max(1)))}
+            "median_max_abs_x": float(np.median(ax.max(1))),
+            **curvature(x, y, heading(obs), dt)}
+
+
+def curvature(x: np.ndarray, y: np.ndarray, psi: np.ndarray, dt: float) -> dict[str, float]:
+    """Path speed (m/s), net heading rate (rad/s) and their ratio, the curving radius (m), of
+    episodes' positions and headings [E, T] from step min(100, T / 2) on."""
+    start = min(100, x.shape[1] // 2)
+    seconds = (x.shape[1] - 1 - start) * dt
+    path = np.hypot(np.diff(x[:, start:], axis=1), np.diff(y[:, start:], axis=1)).sum(1)
+    speed, rate = float(path.mean() / seconds), float((psi[:, -1] - psi[:, start]).mean()
+                                                       / seconds)
+    return {"path_speed": speed, "net_heading_rate": rate,
+            "curving_radius": speed / rate if rate else float("nan")}
 
 
 def drive_summary(rec: dict[str, np.ndarray], n_sensors: int, goal_task: bool = True,
-                  limit: float = 1.0, boundary: float | None = None) -> dict[str, float | list]:
+                  limit: float = 1.0, boundary: float | None = None,
+                  dt: float = 0.04) -> dict[str, float | list]:
     """The statistics of the module docstring from one side's recorded episodes (the goal
     statistics only for a Goal task: `goal_task`; the walls' `lap_summary` when a Circle
-    task's `boundary` is given); actions are clipped at `limit` (the Car's torque limit 0.02)
-    and read in its units."""
+    task's `boundary` is given; `dt`: seconds per env step); actions are clipped at `limit`
+    (the Car's torque limit 0.02) and read in its units."""
     from safecdt_jax.envs.goal import LIDAR_RANGE
 
     obs, a, met = rec["obs"], rec["actions"].astype(np.float64), rec["goal_met"].astype(bool)
@@ -145,7 +163,7 @@ def drive_summary(rec: dict[str, np.ndarray], n_sensors: int, goal_task: bool = 
             "abs_turn": float(turn.mean()), "saturated": float((np.abs(a) >= 0.999).mean())}
     idx = np.digitize(drive, DRIVE_BINS) - 1
     if boundary is not None:
-        out |= lap_summary(obs, n_sensors, boundary)
+        out |= lap_summary(obs, n_sensors, boundary, dt)
     out["speed_by_drive"] = [float(speed[idx == i].mean()) if (idx == i).sum() >= 200 else None
                              for i in range(len(DRIVE_BINS) - 1)]
     out["share_by_drive"] = [float((idx == i).mean()) for i in range(len(DRIVE_BINS) - 1)]
@@ -175,8 +193,10 @@ def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> 
                         "episodes": episodes, "seed": 0, "deterministic": det, "record": True,
                         **_cone(cone)})
             rows.append({"policy": "mean" if det else "sampled",
-                         "ours": drive_summary(o, n_sensors, goal_task, torque, boundary),
-                         "theirs": drive_summary(t, n_sensors, goal_task, torque, boundary)})
+                         "ours": drive_summary(o, n_sensors, goal_task, torque, boundary,
+                                               env.dt),
+                         "theirs": drive_summary(t, n_sensors, goal_task, torque, boundary,
+                                                 env.dt)})
     return rows
 
 

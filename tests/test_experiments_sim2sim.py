@@ -374,7 +374,17 @@ def test_circle_positions_come_back_from_the_lidar_and_magnetometer_and_laps_cou
     lidar_obs = np.zeros((1, 7, env.robot.n_sensors + 16), np.float32)
     lidar_obs[..., 10] = -0.5  # heading 0: the magnetometer reads (0, -0.5)
     lidar_obs[..., env.robot.n_sensors + 8] = 1.0 - xs / 6.0  # the origin straight behind
-    laps = lap_summary(lidar_obs, env.robot.n_sensors, 1.125)
+    laps = lap_summary(lidar_obs, env.robot.n_sensors, 1.125, env.dt)
+    assert env.dt == pytest.approx(0.04)
     assert laps["steps_beyond"] == 3 and laps["wall_entries"] == 1
-    assert laps["entry_speed"] == pytest.approx(0.05 / 0.02, rel=1e-3)
+    assert laps["entry_speed"] == pytest.approx(0.05 / 0.04, rel=1e-3)
+    assert laps["net_heading_rate"] == 0.0 and np.isnan(laps["curving_radius"])
+    # a quarter circle of radius 2 at 0.5 m/s, heading along the path: curving radius 2
+    from experiments.drive_stats import curvature
+
+    t = np.arange(201) * 0.04
+    psi = 0.5 / 2 * t
+    arc = curvature(2 * np.sin(psi)[None], (2 - 2 * np.cos(psi))[None], psi[None], 0.04)
+    assert arc["path_speed"] == pytest.approx(0.5, rel=1e-3)
+    assert arc["curving_radius"] == pytest.approx(2.0, rel=1e-3)
     assert laps["median_max_abs_x"] == pytest.approx(1.2, rel=1e-5)
