@@ -353,3 +353,23 @@ def test_load_jitter_draws_grip_per_step_from_the_key_and_only_under_drive():
     assert np.abs(step(shaken, (1.0, -1.0), k1) - step(shaken, (1.0, -1.0), k2))[2] > 1e-4
     np.testing.assert_allclose(step(shaken, (0.0, 0.0), k1), step(CAR, (0.0, 0.0), k1),
                                atol=1e-7)
+
+
+def test_gyro_rattle_scales_with_the_turn_and_swings_back_from_the_last_draw():
+    """`gyro_rattle`: gyro x, y chatter = drive * (straight std + (spin - straight) * turn) *
+    (e_t - c e_{t-1}) / sqrt(1 + c^2) from the kept draws; the other channels as before, and
+    None keeps physics 7's state (no extra keys)."""
+    import dataclasses
+
+    rattled = dataclasses.replace(CAR, gyro_rattle=(0.2, 0.3, 0.4, 0.5, 0.5))
+    assert set(rattled.init_state()) - set(CAR.init_state()) == {"turn", "rattle"}
+    state = rattled.init_state() | {"drive": jnp.float32(1.0), "turn": jnp.float32(0.5),
+                                     "rattle": jnp.array([[1.0, -2.0], [0.5, 1.0]])}
+    key = jax.random.PRNGKey(0)
+    noise = np.asarray(rattled.chatter(key, state))
+    swing = (np.array([1.0, -2.0]) - 0.5 * np.array([0.5, 1.0])) / np.sqrt(1.25)
+    np.testing.assert_allclose(noise[6:8], np.array([0.3, 0.4]) * swing, rtol=1e-6)
+    plain = np.asarray(CAR.chatter(key, {k: state[k] for k in CAR.init_state()}))
+    np.testing.assert_allclose(noise[[0, 1, 2, 5, 11]], plain[[0, 1, 2, 5, 11]], rtol=1e-6)
+    assert noise[3] == pytest.approx(plain[3] - CAR.roll_height * plain[7]
+                                     + CAR.roll_height * noise[7], rel=1e-5)

@@ -244,6 +244,14 @@ class CarRobot(Robot):
     # torque and not at half, which a planar body's loads cannot. 0: none (physics 5-7). An
     # experiment for issue 48, not a physics version.
     load_jitter: float = 0.0
+    # Gyro x, y rattle per manoeuvre, as native's chassis shows it under the experts' own
+    # driving (docs/research/environment-fidelity.md, 2026-12-07 late): (std x, std y) driving
+    # straight, (std x, std y) spinning, in rad/s at full drive (linear in the step's turn
+    # |t0 - t1| / 2 between them), and the step-to-step swing c: each reading is
+    # (e_t - c e_{t-1}) / sqrt(1 + c^2), lag-1 autocorrelation -c / (1 + c^2). Replaces
+    # `chatter_std`'s gyro x, y (white, drive level only). None: physics 5-7. An experiment
+    # for issue 48, not a physics version.
+    gyro_rattle: tuple[float, float, float, float, float] | None = None
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
@@ -382,7 +390,12 @@ class CarRobot(Robot):
         quat = _quat_integrate(state["caster_quat"], _quat_to_mat(state["caster_quat"]).T @ spin,
                                dt)
         drive = jnp.mean(jnp.abs(torque)) / self.torque_limit
-        return data, {"caster_quat": quat, "caster_spin": spin, "drive": drive}
+        out = {"caster_quat": quat, "caster_spin": spin, "drive": drive}
+        if self.gyro_rattle is not None:
+            out |= {"turn": jnp.abs(torque[0] - torque[1]) / (2 * self.torque_limit),
+                    "rattle": jnp.stack([jax.random.normal(jax.random.fold_in(key, 2), (2,)),
+                                         state["rattle"][0]])}
+        return data, out
 
     def caster_spin(self, data: mjx.Data, u: jax.Array) -> jax.Array:
         """The ball's angular velocity relative to the chassis, in the chassis frame (rad/s), for
@@ -427,6 +440,13 @@ class CarRobot(Robot):
         """
         std = jnp.asarray(self.chatter_std, jnp.float32) * state["drive"]
         noise = std * jax.random.normal(key, std.shape)
+        if self.gyro_rattle is not None:
+            sx, sy, tx, ty, c = self.gyro_rattle
+            turn = jnp.clip(state["turn"], 0.0, 1.0)
+            scale = state["drive"] * jnp.array([sx + (tx - sx) * turn, sy + (ty - sy) * turn])
+            # the previous step's draw, kept in `rattle`, swings the reading back
+            swing = (state["rattle"][0] - c * state["rattle"][1]) / (1 + c * c) ** 0.5
+            noise = noise.at[6:8].set(scale * swing)
         return noise.at[3].add(self.roll_height * noise[7])
 
     def sensors(self, data: mjx.Data, state: dict, key: jax.Array) -> jax.Array:
@@ -440,8 +460,11 @@ class CarRobot(Robot):
         """`caster_quat`: the caster's orientation relative to the chassis, identity at reset as
         in the reference; `caster_spin`: its last spin in the chassis frame (rad/s, 0 at rest);
         `drive`: the last step's mean |torque| / limit, 0 at rest."""
-        return {"caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0]), "caster_spin": jnp.zeros(3),
-                "drive": jnp.float32(0.0)}
+        out = {"caster_quat": jnp.array([1.0, 0.0, 0.0, 0.0]), "caster_spin": jnp.zeros(3),
+               "drive": jnp.float32(0.0)}
+        if self.gyro_rattle is not None:  # `turn`; `rattle`: this and the last step's draws
+            out |= {"turn": jnp.float32(0.0), "rattle": jnp.zeros((2, 2))}
+        return out
 
 
 PYRAMID_EDGES = np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], np.float32)
