@@ -238,10 +238,10 @@ class CarRobot(Robot):
     # today's (docs/research/environment-fidelity.md, 2026-12-07 night). An experiment for
     # issue 48, not a physics version.
     load_transfer_lead: float | None = None
-    # Std of each contact's relative normal-load jitter per env step at full drive (scaled by
-    # the step's drive level, as `chatter`): native's chassis rattles on its three soft
-    # contacts, its gyro z jumping by 0.03 rad/s (straight) to 0.16 (spin) step to step at full
-    # torque and not at half, which a planar body's loads cannot. 0: none (physics 5-7). An
+    # Std of each contact's relative friction-limit jitter, redrawn every env step, at full
+    # drive (scaled by the step's drive level, as `chatter`): native's chassis rattles on its
+    # three soft contacts, its gyro z jittering by 0.03 rad/s (straight) to 0.16 (spin) at full
+    # torque and not at half, which a planar body's grip cannot. 0: none (physics 5-7). An
     # experiment for issue 48, not a physics version.
     load_jitter: float = 0.0
     # Gyro x, y rattle per manoeuvre, as native's chassis shows it under the experts' own
@@ -367,7 +367,8 @@ class CarRobot(Robot):
                 state: dict, key: jax.Array) -> tuple[mjx.Data, dict]:
         """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale;
         rolls the caster (its stick-slip drawn with `key`) and records the drive level (mean
-        |torque| / limit) for the chatter."""
+        |torque| / limit) for the chatter; the options `load_jitter` and `gyro_rattle` draw
+        from `key` too (folded, so the caster's draw is the same with or without them)."""
         m = _scaled_model(model, params)
         torque = params.gear_scale * self.executed_action(action)
         loads = jnp.asarray(self._loads(), jnp.float32)
