@@ -41,18 +41,17 @@ import argparse
 import dataclasses
 import functools
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
 from experiments import car_fit
+from experiments.drive_stats import GYRO_Z, VELOCIMETER, heading, native_recorded
 
 STRIDE = 25  # steps between segment starts
 HEADING_WEIGHT = 2.0  # the heading change (rad) against velocities (m/s) in the loss
 SEARCHED = (*car_fit.FIELDS, "load_transfer_lead", "saturation_power")
-VELOCIMETER, GYRO_Z, MAGNETOMETER = 3, 8, 9  # Car observation dims (x, y of each)
 
 
 def parse_data(text: str) -> list[tuple[str, float, int]]:
@@ -64,13 +63,6 @@ def parse_data(text: str) -> list[tuple[str, float, int]]:
             raise SystemExit(f"--data: {item!r} is not CarTASK:LIMIT:EPISODES")
         out.append((parts[0], float(parts[1]), int(parts[2])))
     return out
-
-
-def heading(obs: np.ndarray) -> np.ndarray:
-    """World heading (rad, unwrapped along the last-but-one axis) from the magnetometer's body
-    x, y readings of the world field (0, -0.5, 0): (-0.5 sin psi, -0.5 cos psi)."""
-    mx, my = obs[..., MAGNETOMETER], obs[..., MAGNETOMETER + 1]
-    return np.unwrap(np.arctan2(-mx, -my), axis=-1)
 
 
 def segments(obs: np.ndarray, actions: np.ndarray, horizon: int, stride: int = STRIDE):
@@ -89,19 +81,6 @@ def segments(obs: np.ndarray, actions: np.ndarray, horizon: int, stride: int = S
     n = len(starts) * obs.shape[0]
     return (state.reshape(n, 3).astype(np.float32), acts.reshape(n, horizon, 2).astype(np.float32),
             target.reshape(n, horizon, 3).astype(np.float32))
-
-
-def native_records(task: str, limit: float, episodes: int) -> dict[str, dict]:
-    """Native's recorded episodes of the task's expert, by action mode ("mean", "sampled")."""
-    from experiments.sim2sim import export_policy, native, pick_expert
-    from safecdt_jax.experts.collect import snapshot_path
-
-    with tempfile.TemporaryDirectory() as tmp:
-        weights = Path(tmp) / "policy.npz"
-        export_policy(snapshot_path(task), pick_expert(task, limit), weights)
-        return {"mean" if det else "sampled": native(
-            {"cmd": "policy", "task": task, "weights": str(weights), "episodes": episodes,
-             "seed": 0, "deterministic": det, "record": True}) for det in (True, False)}
 
 
 @functools.cache
@@ -202,7 +181,7 @@ def main(argv: list[str] | None = None) -> None:
     rng = np.random.default_rng(args.seed)
     data, names = [], []
     for task, limit, episodes in parse_data(args.data):
-        for mode, rec in native_records(task, limit, episodes).items():
+        for mode, rec in native_recorded(task, limit, episodes).items():
             state, acts, target = segments(rec["obs"], rec["actions"], args.horizon)
             pick = rng.permutation(len(state))[:args.segments]
             data.append((state[pick], acts[pick], target[pick]))

@@ -42,6 +42,7 @@ import numpy as np
 from benchmarks.common import machine, markdown_table, write_json, write_markdown
 
 DRIVE_BINS = (-1.01, 0.0, 0.5, 0.8, 0.95, 1.01)
+VELOCIMETER, GYRO_Z, MAGNETOMETER = 3, 8, 9  # Car observation dims (x, y of each)
 
 
 def ours_recorded(task: str, snapshot_file: Path, index: int, episodes: int,
@@ -73,12 +74,18 @@ def ours_recorded(task: str, snapshot_file: Path, index: int, episodes: int,
             "goal_met": np.asarray(goal_met), "cost": np.asarray(cost).sum(1)}
 
 
+def heading(obs: np.ndarray) -> np.ndarray:
+    """World heading (rad, unwrapped along the last-but-one axis) from the magnetometer's body
+    x, y readings of the world field (0, -0.5, 0): (-0.5 sin psi, -0.5 cos psi)."""
+    mx, my = obs[..., MAGNETOMETER], obs[..., MAGNETOMETER + 1]
+    return np.unwrap(np.arctan2(-mx, -my), axis=-1)
+
+
 def circle_positions(obs: np.ndarray, n_sensors: int) -> tuple[np.ndarray, np.ndarray]:
     """World x, y (m) of the agent from a Circle task's observations [..., T, D]: the circle
     lidar's strongest bin and its aliased neighbour give the origin's body-frame distance and
     bearing (`envs.geometry.pseudo_lidar`, 6 m range), the magnetometer the heading. Exact
     while the origin is in range."""
-    from experiments.car_sysid import heading
     from safecdt_jax.envs.circle import LIDAR_RANGE
 
     lidar = obs[..., n_sensors:n_sensors + 16]
@@ -100,8 +107,6 @@ def lap_summary(obs: np.ndarray, n_sensors: int, boundary: float,
     episode's largest |x|; `dt`: seconds per env step. Also the laps' curvature: the path
     speed (m/s) and net heading rate (rad/s, from the magnetometer) from step 100 on, and their
     ratio, the radius (m) the car curves at."""
-    from experiments.car_sysid import heading
-
     x, y = circle_positions(obs, n_sensors)
     ax = np.abs(x)
     out = ax > boundary
@@ -170,10 +175,27 @@ def drive_summary(rec: dict[str, np.ndarray], n_sensors: int, goal_task: bool = 
     return out
 
 
+def native_recorded(task: str, limit: float, episodes: int,
+                    cone: str = "pyramidal") -> dict[str, dict]:
+    """Native's recorded episodes of the task's expert (`sim2sim.pick_expert`) by action mode
+    ("mean", "sampled"): the peer's `policy` request with `record` (cached), native's friction
+    cone `cone`."""
+    from experiments.sim2sim import export_policy, native, pick_expert
+    from safecdt_jax.experts.collect import snapshot_path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        weights = Path(tmp) / "policy.npz"
+        export_policy(snapshot_path(task), pick_expert(task, limit), weights)
+        return {"mean" if det else "sampled": native(
+            {"cmd": "policy", "task": task, "weights": str(weights), "episodes": episodes,
+             "seed": 0, "deterministic": det, "record": True, **_cone(cone)})
+            for det in (True, False)}
+
+
 def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> list[dict]:
     """Per action mode, our and native's `drive_summary` of the task's expert in `task`
     (native's friction cone `cone`)."""
-    from experiments.sim2sim import export_policy, native, pick_expert
+    from experiments.sim2sim import pick_expert
     from safecdt_jax import envs
     from safecdt_jax.experts.collect import snapshot_path
 
@@ -183,20 +205,14 @@ def compare(task: str, limit: float, episodes: int, cone: str = "pyramidal") -> 
     boundary = float(params.boundary) if "Circle" in task else None
     n_sensors, torque = robot.n_sensors, getattr(robot, "torque_limit", 1.0)
     goal_task = "Goal" in task
+    theirs = native_recorded(task, limit, episodes, cone)
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        weights = Path(tmp) / "policy.npz"
-        export_policy(snapshot_path(task), index, weights)
-        for det in (True, False):
-            o = ours_recorded(task, snapshot_path(task), index, episodes, det)
-            t = native({"cmd": "policy", "task": task, "weights": str(weights),
-                        "episodes": episodes, "seed": 0, "deterministic": det, "record": True,
-                        **_cone(cone)})
-            rows.append({"policy": "mean" if det else "sampled",
-                         "ours": drive_summary(o, n_sensors, goal_task, torque, boundary,
-                                               env.dt),
-                         "theirs": drive_summary(t, n_sensors, goal_task, torque, boundary,
-                                                 env.dt)})
+    for mode in ("mean", "sampled"):
+        o = ours_recorded(task, snapshot_path(task), index, episodes, mode == "mean")
+        rows.append({"policy": mode,
+                     "ours": drive_summary(o, n_sensors, goal_task, torque, boundary, env.dt),
+                     "theirs": drive_summary(theirs[mode], n_sensors, goal_task, torque,
+                                             boundary, env.dt)})
     return rows
 
 

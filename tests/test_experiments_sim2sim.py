@@ -291,14 +291,8 @@ def test_car_fit_sideways_velocities_are_keyed_weighted_and_optional():
 
 
 def test_car_sysid_segments_read_heading_and_velocities_from_native_records():
-    from experiments.car_sysid import (
-        GYRO_Z,
-        MAGNETOMETER,
-        VELOCIMETER,
-        heading,
-        parse_data,
-        segments,
-    )
+    from experiments.car_sysid import parse_data, segments
+    from experiments.drive_stats import GYRO_Z, MAGNETOMETER, VELOCIMETER, heading
 
     assert parse_data("CarGoal1:25:64,CarCircle1:5:128") == [("CarGoal1", 25.0, 64),
                                                              ("CarCircle1", 5.0, 128)]
