@@ -121,14 +121,15 @@ def prediction_loss(thetas: np.ndarray, fields: tuple[str, ...], data: list[tupl
     `data`: the mean over segments of the weighted RMS prediction error, plus `bias_weight`
     times the error of the mean heading change at the horizon (rad): the RMS is ruled by each
     segment's scatter, while how tight a loop the expert drives is the mean. [c, len(data)]."""
-    weight = np.array([1.0, 1.0, HEADING_WEIGHT], np.float32)
-    out = []
-    for state, acts, target in data:
-        pred = np.asarray(_program(fields)(thetas.astype(np.float32), state, acts))
-        err = (pred - target[None]) * weight
-        bias = np.abs(pred[:, :, -1, 2].mean(-1) - target[:, -1, 2].mean())
-        out.append(np.sqrt(np.mean(err ** 2, axis=(2, 3))).mean(-1) + bias_weight * bias)
-    return np.stack(out, axis=-1)
+    return np.stack([_loss(np.asarray(_program(fields)(thetas.astype(np.float32), state, acts)),
+                           target, bias_weight) for state, acts, target in data], axis=-1)
+
+
+def _loss(pred: np.ndarray, target: np.ndarray, bias_weight: float) -> np.ndarray:
+    """`prediction_loss` of one dataset's predictions [c, n, K, 3] against its targets."""
+    err = (pred - target[None]) * np.array([1.0, 1.0, HEADING_WEIGHT], np.float32)
+    bias = np.abs(pred[:, :, -1, 2].mean(-1) - target[:, -1, 2].mean())
+    return np.sqrt(np.mean(err ** 2, axis=(2, 3))).mean(-1) + bias_weight * bias
 
 
 PULSES = ("toward +y", "toward -y", "near rest")  # a spin pulse's travel direction
@@ -192,17 +193,18 @@ def main(argv: list[str] | None = None) -> None:
     (best_loss, best), history = car_fit.cross_entropy(
         lambda th: prediction_loss(th, SEARCHED, data, args.bias_weight).mean(-1), start, lo,
         hi, args.rounds, args.seed)
-    before, after = prediction_loss(np.stack([start, best]), SEARCHED, data, args.bias_weight)
-    pulses, mean_turns = [], []
+    losses, pulses, mean_turns = [], [], []
     for name, (state, acts, target) in zip(names, data, strict=True):
         pred = np.asarray(_program(SEARCHED)(np.stack([start, best]).astype(np.float32), state,
                                              acts))
+        losses.append(_loss(pred, target, args.bias_weight))
         pulses.append({"data": name, "native": pulse_response(state, acts, target[:, -1, 2]),
                        "current": pulse_response(state, acts, pred[0, :, -1, 2]),
                        "fitted": pulse_response(state, acts, pred[1, :, -1, 2])})
         mean_turns.append({"data": name, "native": float(target[:, -1, 2].mean()),
                            "current": float(pred[0, :, -1, 2].mean()),
                            "fitted": float(pred[1, :, -1, 2].mean())})
+    before, after = np.stack(losses, axis=-1)
     scripts = [script_loss(start), script_loss(best)]
     constants = dict(zip(SEARCHED, best.round(4).tolist(), strict=True))
     power = constants.pop("saturation_power")
