@@ -2,7 +2,7 @@
 experts' actions (issue 48).
 
     python -m experiments.car_sysid [--data CarGoal1:25:64,CarCircle1:5:128] [--horizon 8]
-        [--segments 800] [--rounds 12] [--bias-weight 0]
+        [--segments 800] [--rounds 12] [--bias-weight 0] [--lateral-weight 0]
         [--out experiments/results/car_sysid.json]
 
 `experiments.car_fit` fits the Car to scripted drives (held actions, straight/spin switching,
@@ -24,7 +24,9 @@ under these drives), and where the car goes follows the heading.
 
 Loss: the root-mean-square error per segment (velocities in m/s, heading changes x
 `HEADING_WEIGHT`), averaged per expert and action mode, plus `--bias-weight` times the error of
-the mean heading change (the curvature the expert's laps are made of), then averaged over
+the mean heading change (the curvature the expert's laps are made of) and `--lateral-weight`
+times the error of the mean sideways velocity over every predicted step (m/s: where the car
+pivots under these drives, which the experts read off the velocimeter), then averaged over
 them. Search: the
 cross-entropy method of `car_fit` over `car_fit.FIELDS`, `load_transfer_lead` and
 `saturation_power` from the `CarRobot` defaults. Also reported: the fitted and current
@@ -116,20 +118,26 @@ def _program(fields: tuple[str, ...]):
 
 
 def prediction_loss(thetas: np.ndarray, fields: tuple[str, ...], data: list[tuple],
-                    bias_weight: float = 0.0) -> np.ndarray:
+                    bias_weight: float = 0.0, lateral_weight: float = 0.0) -> np.ndarray:
     """Per candidate row of `thetas` and per dataset (start states, actions, targets) of
     `data`: the mean over segments of the weighted RMS prediction error, plus `bias_weight`
     times the error of the mean heading change at the horizon (rad): the RMS is ruled by each
-    segment's scatter, while how tight a loop the expert drives is the mean. [c, len(data)]."""
+    segment's scatter, while how tight a loop the expert drives is the mean), plus
+    `lateral_weight` times the error of the mean sideways velocity over all predicted steps
+    (m/s). [c, len(data)]."""
     return np.stack([_loss(np.asarray(_program(fields)(thetas.astype(np.float32), state, acts)),
-                           target, bias_weight) for state, acts, target in data], axis=-1)
+                           target, bias_weight, lateral_weight)
+                     for state, acts, target in data], axis=-1)
 
 
-def _loss(pred: np.ndarray, target: np.ndarray, bias_weight: float) -> np.ndarray:
+def _loss(pred: np.ndarray, target: np.ndarray, bias_weight: float,
+          lateral_weight: float = 0.0) -> np.ndarray:
     """`prediction_loss` of one dataset's predictions [c, n, K, 3] against its targets."""
     err = (pred - target[None]) * np.array([1.0, 1.0, HEADING_WEIGHT], np.float32)
     bias = np.abs(pred[:, :, -1, 2].mean(-1) - target[:, -1, 2].mean())
-    return np.sqrt(np.mean(err ** 2, axis=(2, 3))).mean(-1) + bias_weight * bias
+    lateral = np.abs(pred[..., 0].mean((1, 2)) - target[..., 0].mean())
+    return (np.sqrt(np.mean(err ** 2, axis=(2, 3))).mean(-1) + bias_weight * bias
+            + lateral_weight * lateral)
 
 
 PULSES = ("toward +y", "toward -y", "near rest")  # a spin pulse's travel direction
@@ -175,6 +183,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--bias-weight", type=float, default=0.0,
                     help="weight of the mean heading change's error (prediction_loss)")
+    ap.add_argument("--lateral-weight", type=float, default=0.0,
+                    help="weight of the mean sideways velocity's error (prediction_loss)")
     ap.add_argument("--out", type=Path, default=Path("experiments/results/car_sysid.json"))
     args = ap.parse_args(argv)
     if args.horizon < 1 or args.segments < 1:
@@ -191,19 +201,23 @@ def main(argv: list[str] | None = None) -> None:
     lo, hi = (np.array([bounds[f][i] for f in SEARCHED]) for i in (0, 1))
     start = current_constants()
     (best_loss, best), history = car_fit.cross_entropy(
-        lambda th: prediction_loss(th, SEARCHED, data, args.bias_weight).mean(-1), start, lo,
+        lambda th: prediction_loss(th, SEARCHED, data, args.bias_weight,
+                                   args.lateral_weight).mean(-1), start, lo,
         hi, args.rounds, args.seed)
-    losses, pulses, mean_turns = [], [], []
+    losses, pulses, mean_turns, mean_sideways = [], [], [], []
     for name, (state, acts, target) in zip(names, data, strict=True):
         pred = np.asarray(_program(SEARCHED)(np.stack([start, best]).astype(np.float32), state,
                                              acts))
-        losses.append(_loss(pred, target, args.bias_weight))
+        losses.append(_loss(pred, target, args.bias_weight, args.lateral_weight))
         pulses.append({"data": name, "native": pulse_response(state, acts, target[:, -1, 2]),
                        "current": pulse_response(state, acts, pred[0, :, -1, 2]),
                        "fitted": pulse_response(state, acts, pred[1, :, -1, 2])})
         mean_turns.append({"data": name, "native": float(target[:, -1, 2].mean()),
                            "current": float(pred[0, :, -1, 2].mean()),
                            "fitted": float(pred[1, :, -1, 2].mean())})
+        mean_sideways.append({"data": name, "native": float(target[..., 0].mean()),
+                              "current": float(pred[0, ..., 0].mean()),
+                              "fitted": float(pred[1, ..., 0].mean())})
     before, after = np.stack(losses, axis=-1)
     scripts = [script_loss(start), script_loss(best)]
     constants = dict(zip(SEARCHED, best.round(4).tolist(), strict=True))
@@ -218,7 +232,8 @@ def main(argv: list[str] | None = None) -> None:
                           "pulses": pulses,
                           "horizon": args.horizon, "segments": args.segments,
                           "bias_weight": args.bias_weight,
-                          "mean_turn": mean_turns})
+                          "lateral_weight": args.lateral_weight,
+                          "mean_turn": mean_turns, "mean_sideways": mean_sideways})
     rows = [[name, f"{b:.4f}", f"{a:.4f}"] for name, b, a in zip(names, before, after,
                                                                    strict=True)]
     rows.append(["mean", f"{before.mean():.4f}", f"{best_loss:.4f}"])
@@ -243,6 +258,10 @@ def main(argv: list[str] | None = None) -> None:
              "(native / current / fitted): " + "; ".join(
                  f"{m['data']} {m['native']:.4f} / {m['current']:.4f} / {m['fitted']:.4f}"
                  for m in mean_turns) + ".")
+    body += ("\n\nMean sideways velocity (m/s) over every predicted step (native / current / "
+             "fitted): " + "; ".join(
+                 f"{m['data']} {m['native']:+.4f} / {m['current']:+.4f} / {m['fitted']:+.4f}"
+                 for m in mean_sideways) + ".")
     write_markdown(args.out.with_suffix(".md"), "Car traction constants fitted to native "
                    "transitions under the experts' actions", command, body)
     print(args.out.with_suffix(".md").read_text())

@@ -333,6 +333,11 @@ def test_car_sysid_loss_is_zero_at_the_constants_that_made_the_data():
     assert np.abs(made[:, -1, 2]).max() > 0.005  # the spin pulses turn the car
     loss = prediction_loss(np.stack([truth, other]), SEARCHED, [(state, acts, made)])
     assert loss.shape == (2, 1) and loss[0, 0] == 0.0 and loss[1, 0] > 1e-4
+    # the lateral term: the error of the mean sideways velocity over every step, weighted
+    drifted = made + np.array([0.01, 0.0, 0.0], np.float32)
+    plain, weighted = (prediction_loss(truth[None], SEARCHED, [(state, acts, drifted)],
+                                       lateral_weight=w)[0, 0] for w in (0.0, 5.0))
+    assert weighted - plain == pytest.approx(0.05, rel=1e-3)
 
 
 def test_car_sysid_pulse_response_signs_spin_pulses_by_direction_and_skips_the_rest():

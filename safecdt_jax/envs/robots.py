@@ -252,6 +252,15 @@ class CarRobot(Robot):
     # `chatter_std`'s gyro x, y (white, drive level only). None: physics 5-7. An experiment
     # for issue 48, not a physics version.
     gyro_rattle: tuple[float, float, float, float, float] | None = None
+    # s: time constant of a first-order lag on the ground forces and yaw torque. Native
+    # MuJoCo's contacts are soft (solref 0.02 s), so its forces follow a change of slip with a
+    # delay: under the Circle expert's spin pulses native's car reaches 0.95 rad/s one step
+    # after a spin step (of a held spin's 1.33) and keeps 0.11 one step after a straight one,
+    # where a car whose forces follow the slip at once reaches 1.14 and keeps 0.07; held drives
+    # settle where they did. Each force evaluation (N_SUBSTEPS + 1 per env step, the last for
+    # the sensors) moves the applied force 1 - exp(-timestep / force_lag) of the way to the
+    # slip's. 0: none (physics 5-7). An experiment for issue 48, not a physics version.
+    force_lag: float = 0.0
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
@@ -382,6 +391,10 @@ class CarRobot(Robot):
 
         def push(d):
             f = self.traction(d, torque, params, loads, com, jitter)
+            # (a traced lag, as the experiments' searches pass, always lags)
+            if isinstance(self.force_lag, jax.Array) or self.force_lag > 0:
+                keep = jnp.exp(-self.timestep / jnp.maximum(self.force_lag, 1e-9))
+                f = keep * d.xfrc_applied[1] + (1.0 - keep) * f
             return d.replace(xfrc_applied=d.xfrc_applied.at[1].set(f))
 
         data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, push(d)), data)
