@@ -40,7 +40,8 @@ NATIVE = tuple(f"experiments/results/{name}.json" for name in (
 
 def parse_variant(text: str) -> tuple[str, dict]:
     """`NAME=FIELD:VALUE,FIELD:VALUE` -> (name, {field: value}); values are floats except
-    `friction_cone`. SystemExit naming the field if it is not a `CarRobot` field."""
+    `friction_cone`, and tuples of floats where the value holds "/" (`wheel_hop:0.75/11/10`).
+    SystemExit naming the field if it is not a `CarRobot` field."""
     from safecdt_jax.envs.robots import CarRobot
 
     name, _, spec = text.partition("=")
@@ -50,7 +51,12 @@ def parse_variant(text: str) -> tuple[str, dict]:
         key, _, value = item.partition(":")
         if key not in fields:
             raise SystemExit(f"--variant {name}: {key!r} is not a CarRobot field")
-        out[key] = value if key == "friction_cone" else float(value)
+        if key == "friction_cone":
+            out[key] = value
+        elif "/" in value:
+            out[key] = tuple(float(v) for v in value.split("/"))
+        else:
+            out[key] = float(value)
     return name, out
 
 

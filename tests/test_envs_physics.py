@@ -402,3 +402,37 @@ def test_force_lag_slows_a_pulse_but_not_a_held_drive():
     now, late = yaw_rates(CAR, pulse), yaw_rates(lagged, pulse)
     assert late[0] < 0.9 * now[0] and late[1] > now[1] + 0.05
     assert yaw_rates(lagged, held)[-1] == pytest.approx(yaw_rates(CAR, held)[-1], rel=0.02)
+
+
+def test_wheel_hop_lifts_the_flipped_wheel_for_its_substeps_and_kicks_the_yaw():
+    """`wheel_hop` (kick, base, per speed): a full torque flip on the right wheel of a moving
+    car adds the kick to the yaw rate toward the turn it makes and keeps that wheel off the
+    ground for base + per speed * speed substeps (carried over into the next env step); a car
+    at rest does not hop, and None keeps physics 7's state (no extra keys)."""
+    import dataclasses
+
+    env, params = envs.make("CarCircle1")
+    hopping = dataclasses.replace(CAR, wheel_hop=(0.75, 11.0, 10.0))
+    assert set(hopping.init_state()) - set(CAR.init_state()) == {"last_torque", "air"}
+    state = hold("CarCircle1", (1.0, 1.0), 2.0)
+    speed = float(jnp.linalg.norm(state.data.qvel[:2]))
+    torque = params.gear_scale * CAR.executed_action(jnp.array([1.0, 1.0]))
+    robot = hopping.init_state() | {k: state.robot[k] for k in CAR.init_state()} | {
+        "last_torque": torque}
+    key = jax.random.PRNGKey(0)
+    spin = jnp.array([1.0, -1.0])
+    data, after = hopping.physics(env.model, state.data, spin, params, robot, key)
+    unkicked, _ = dataclasses.replace(hopping, wheel_hop=(0.0, 11.0, 10.0)).physics(
+        env.model, state.data, spin, params, robot, key)
+    air = 11.0 + 10.0 * speed
+    np.testing.assert_allclose(np.asarray(after["air"]), [0.0, air - 10], rtol=1e-5)
+    assert float(data.qvel[2]) > float(unkicked.qvel[2]) + 0.1  # kicked toward the spin...
+    forces, normal = hopping.contact_forces(data, torque, params,
+                                            jnp.asarray(CAR._loads(), jnp.float32),
+                                            grounded=jnp.array([1.0, 0.0, 1.0]))
+    assert float(normal[1]) == 0.0 and np.all(np.asarray(forces[1]) == 0.0)  # ...on one wheel
+    rest = hold("CarCircle1", (0.0, 0.0), 0.2)
+    robot = hopping.init_state() | {k: rest.robot[k] for k in CAR.init_state()} | {
+        "last_torque": torque}
+    _, still = hopping.physics(env.model, rest.data, spin, params, robot, key)
+    np.testing.assert_array_equal(np.asarray(still["air"]), [0.0, 0.0])

@@ -263,6 +263,7 @@ def test_car_variants_read_fields_and_fits_and_refuse_an_unknown_field(tmp_path)
 
     assert parse_variant("pyr=friction_cone:pyramidal,sliding:0.9") == (
         "pyr", {"friction_cone": "pyramidal", "sliding": 0.9})
+    assert parse_variant("hop=wheel_hop:0.75/11/10") == ("hop", {"wheel_hop": (0.75, 11.0, 10.0)})
     with pytest.raises(SystemExit, match="'grip' is not a CarRobot field"):
         parse_variant("x=grip:1")
     path = tmp_path / "fit.json"
@@ -387,3 +388,26 @@ def test_circle_positions_come_back_from_the_lidar_and_magnetometer_and_laps_cou
     assert arc["path_speed"] == pytest.approx(0.5, rel=1e-3)
     assert arc["curving_radius"] == pytest.approx(2.0, rel=1e-3)
     assert laps["median_max_abs_x"] == pytest.approx(1.2, rel=1e-5)
+
+
+def test_wheel_hop_summary_counts_the_lifted_substeps_against_the_lead():
+    from experiments.wheel_hop import BEFORE, COLUMNS, PULSE, summary
+
+    n = (BEFORE + len(PULSE)) * 10
+    sub = np.zeros((2, n, len(COLUMNS)))
+    col = {c: i for i, c in enumerate(COLUMNS)}
+    sub[..., col["load_right"]] = 0.08
+    sub[:, 3, col["load_right"]] = 0.0  # one lifted substep while driving straight
+    start = BEFORE * 10
+    sub[0, start + 1:start + 16, col["load_right"]] = 0.0  # 15 and 5 substeps off the ground
+    sub[1, start + 1:start + 6, col["load_right"]] = 0.0
+    sub[:, start, col["load_right"]] = 0.6  # the flip's spike
+    sub[:, start:, col["yaw_rate"]] = np.linspace(0.8, 0.0, n - start)
+    sub[:, :, col["height"]] = 0.1
+    sub[:, start + 4, col["height"]] = 0.1025
+    out = summary(sub)
+    assert out["right_wheel_unloaded_substeps"] == 10.0
+    assert out["right_wheel_unloaded_substeps_before"] == 1.0
+    assert out["right_wheel_peak_load"] == pytest.approx(0.6)
+    assert out["yaw_first_substep"] == pytest.approx(0.8)
+    assert len(out["yaw_step_end"]) == len(PULSE) and out["rise_mm"] == pytest.approx(2.5)

@@ -21,6 +21,11 @@ It imports only the peer's packages, never this project. Requests (JSON):
   `start`..`steps` of each ground contact's force on the car in the chassis frame (left wheel,
   right wheel, caster: x, y, normal; N, summed over that geom's contacts), its point's velocity
   (m/s, x, y) and the wheels' rim speeds (hinge rate x radius, m/s).
+- `{"cmd": "pulse", "task": "CarCircle1", "lead": [1, 1], "lead_steps": 100, "actions":
+  [[1, -1], [1, 1], ...], "episodes": 4, "seed": 0}`: `lead` held from rest for `lead_steps`
+  env steps, then `actions` one env step each, recorded after every physics substep (Car):
+  the wheels' and caster's normal loads, yaw rate, forward speed, chassis height, pitch and
+  roll (`pulse`).
 - `{"cmd": "shifts", "task": "CarGoal1", "shifts": [{"friction_scale": 0.5}, ...],
   "layouts": 3}`: per shift (this project's `EnvParams` scales applied to the native model:
   every geom's sliding friction, the actuators' gear, the robot's joint dampings, its bodies'
@@ -161,20 +166,13 @@ def contacts(task: str, actions: list, steps: int, start: int, seed: int) -> dic
         agent = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "agent")
         hinges = [m.jnt_dofadr[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_JOINT, n)]
                   for n in ("left", "right")]
-        f_sum, v_sum, rim_sum, f6, v6 = np.zeros((3, 3)), np.zeros((3, 2)), np.zeros(2), \
-            np.zeros(6), np.zeros(6)
+        f_sum, v_sum, rim_sum, v6 = np.zeros((3, 3)), np.zeros((3, 2)), np.zeros(2), np.zeros(6)
         for t in range(steps):
             env.step(np.asarray(action, float))
             if t < start:
                 continue
             rot = d.xmat[agent].reshape(3, 3)
-            for i in range(d.ncon):
-                c = d.contact[i]
-                for k, g in enumerate(geoms):
-                    if g in (c.geom1, c.geom2):
-                        mujoco.mj_contactForce(m, d, i, f6)
-                        world = c.frame.reshape(3, 3).T @ f6[:3]  # on geom2, from geom1
-                        f_sum[k] += rot.T @ (world if c.geom2 == g else -world)
+            f_sum += _ground_forces(m, d, geoms, rot)
             for k, g in enumerate(geoms):
                 mujoco.mj_objectVelocity(m, d, mujoco.mjtObj.mjOBJ_GEOM, g, v6, 0)
                 v_sum[k] += (rot.T @ v6[3:])[:2]
@@ -184,6 +182,56 @@ def contacts(task: str, actions: list, steps: int, start: int, seed: int) -> dic
         speeds.append(v_sum / n)
         rims.append(rim_sum / n)
     return {"force": np.asarray(forces), "velocity": np.asarray(speeds), "rim": np.asarray(rims)}
+
+
+def _ground_forces(m, d, geoms: list, rot: np.ndarray) -> np.ndarray:
+    """Each of `geoms`' ground contact forces on the car in the chassis frame (x, y, normal;
+    N, summed over that geom's contacts) [len(geoms), 3]."""
+    import mujoco
+
+    out, f6 = np.zeros((len(geoms), 3)), np.zeros(6)
+    for i in range(d.ncon):
+        c = d.contact[i]
+        for k, g in enumerate(geoms):
+            if g in (c.geom1, c.geom2):
+                mujoco.mj_contactForce(m, d, i, f6)
+                world = c.frame.reshape(3, 3).T @ f6[:3]  # on geom2, from geom1
+                out[k] += rot.T @ (world if c.geom2 == g else -world)
+    return out
+
+
+def pulse(task: str, lead: list, lead_steps: int, actions: list, episodes: int,
+          seed: int) -> dict:
+    """Per physics substep while `actions` play (one per env step) after `lead` was held for
+    `lead_steps` env steps from rest (Car), per episode (layout): the normal loads (N) on the
+    left wheel, right wheel and caster, the yaw rate (rad/s), the forward speed (m/s, toward
+    body -y), the chassis height (m), and its pitch and roll (rad, from the body z axis):
+    `substeps` [episodes, len(actions) * frameskip, 8]."""
+    import mujoco
+
+    env = make(task)
+    out = []
+    for e in range(episodes):
+        _reset(env, seed + e, "pyramidal")
+        m, d = env.unwrapped.task.model, env.unwrapped.task.data
+        geoms = [mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n)
+                 for n in ("left", "right", "rear")]
+        agent = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "agent")
+        for _ in range(lead_steps):
+            env.step(np.asarray(lead, float))
+        rows = []
+        for action in actions:
+            # env.step's physics, one substep at a time (frameskip_binom_p is 1: always n)
+            env.unwrapped.task.agent.apply_action(np.asarray(action, float))
+            for _ in range(env.unwrapped.task.sim_conf.frameskip_binom_n):
+                mujoco.mj_step(m, d)
+                rot = d.xmat[agent].reshape(3, 3)
+                loads = _ground_forces(m, d, geoms, rot)[:, 2]
+                rows.append([*loads, d.qvel[5], -(rot.T @ d.qvel[:3])[1], d.xpos[agent][2],
+                             np.arcsin(np.clip(rot[2, 1], -1, 1)),
+                             np.arcsin(np.clip(rot[2, 0], -1, 1))])
+        out.append(rows)
+    return {"substeps": np.asarray(out)}
 
 
 def _apply_shift(m, shift: dict) -> None:
@@ -261,8 +309,8 @@ def main() -> None:
     """Reads the request, writes the arrays."""
     request = json.loads(open(sys.argv[1]).read())
     cmd = request.pop("cmd")
-    result = {"trace": trace, "policy": policy, "contacts": contacts,
-              "shifts": shifts, "layouts": layouts}[cmd](**request)
+    result = {"trace": trace, "policy": policy, "contacts": contacts, "shifts": shifts,
+              "layouts": layouts, "pulse": pulse}[cmd](**request)
     np.savez(sys.argv[2], **result)
 
 

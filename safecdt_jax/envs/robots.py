@@ -261,6 +261,13 @@ class CarRobot(Robot):
     # the sensors) moves the applied force 1 - exp(-timestep / force_lag) of the way to the
     # slip's. 0: none (physics 5-7). An experiment for issue 48, not a physics version.
     force_lag: float = 0.0
+    # A wheel hop at each torque reversal, as native's soft contacts make it
+    # (`experiments.wheel_hop`): when a wheel's full torque flips sign while the car moves
+    # (> 0.1 m/s), the car's yaw rate jumps by the first number (rad/s, toward the turn the
+    # flip makes) and that wheel leaves the ground (no load, no force) for the second number plus
+    # the third times the speed (m/s) physics substeps. None: no hop (physics 5-7). An
+    # experiment for issue 48, not a physics version.
+    wheel_hop: tuple[float, float, float] | None = None
 
     def _loads(self) -> np.ndarray:
         """Static normal loads (N) on left wheel, right wheel and caster, at mass scale 1."""
@@ -279,14 +286,15 @@ class CarRobot(Robot):
         return v_body[None, :] + data.qvel[2] * jnp.stack([-pts[:, 1], pts[:, 0]], axis=-1)
 
     def contact_forces(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
-                       loads: jax.Array, jitter: jax.Array | None = None
-                       ) -> tuple[jax.Array, jax.Array]:
+                       loads: jax.Array, jitter: jax.Array | None = None,
+                       grounded: jax.Array | None = None) -> tuple[jax.Array, jax.Array]:
         """Body-frame ground forces (N) [3, 2] (x lateral, y longitudinal; positive y toward
         the rear) on left wheel, right wheel and caster, and their normal loads (N) [3].
 
         `data.xfrc_applied` holds the previous substep's force (zero at reset): its body-frame
         longitudinal part sets the load transfer. `jitter` [3] (optional): factors on the
-        friction limits (`load_jitter`).
+        friction limits (`load_jitter`); `grounded` [3] (optional): 0 for a contact off the
+        ground (`wheel_hop`), 1 otherwise.
         """
         rot = rot2(data.qpos[2])
         v_pts = self.contact_velocities(data)
@@ -299,6 +307,8 @@ class CarRobot(Robot):
             transfer = jnp.where(v_pts[0, 1] + v_pts[1, 1] > 0, self.load_transfer_lead, transfer)
         axle = jnp.clip(static[0] + 0.5 * transfer * push, 0.0, 0.5 * weight)
         normal = jnp.stack([axle, axle, weight - 2 * axle])
+        if grounded is not None:  # a hopping wheel carries nothing (`wheel_hop`)
+            normal = normal * grounded
         rel = params.damping_scale * normal / static  # gains scale with load and damping
         sliding = jnp.array([self.sliding, self.sliding, self.caster_sliding])
         limit = sliding * self.friction * params.friction_scale * normal
@@ -355,11 +365,11 @@ class CarRobot(Robot):
         return limit[:, None] * jnp.stack([-lat, long], axis=-1) / n[:, None]
 
     def traction(self, data: mjx.Data, torque: jax.Array, params: EnvParams,
-                 loads: jax.Array, com: jax.Array, jitter: jax.Array | None = None
-                 ) -> jax.Array:
+                 loads: jax.Array, com: jax.Array, jitter: jax.Array | None = None,
+                 grounded: jax.Array | None = None) -> jax.Array:
         """World-frame force and torque [6] on the chassis COM from the `contact_forces` and
         the yaw scrub."""
-        forces, _ = self.contact_forces(data, torque, params, loads, jitter)
+        forces, _ = self.contact_forces(data, torque, params, loads, jitter, grounded)
         lever = jnp.array(self.contacts) - com[None, :]
         tz = jnp.sum(lever[:, 0] * forces[:, 1] - lever[:, 1] * forces[:, 0])
         # Scrub is contact friction: it scales with mu (as the reference's torsional friction).
@@ -389,15 +399,34 @@ class CarRobot(Robot):
             noise = jax.random.normal(jax.random.fold_in(key, 1), (3,))
             jitter = jnp.maximum(1.0 + self.load_jitter * level * noise, 0.0)
 
-        def push(d):
-            f = self.traction(d, torque, params, loads, com, jitter)
+        hop = None
+        if self.wheel_hop is not None:
+            kick, base, per_speed = self.wheel_hop
+            last = state["last_torque"]
+            speed = jnp.linalg.norm(data.qvel[:2])
+            full = 0.5 * self.torque_limit * params.gear_scale
+            flips = ((torque * last < 0) & (jnp.abs(torque) > full) & (jnp.abs(last) > full)
+                     & (state["air"] <= 0) & (speed > 0.1))
+            air = jnp.where(flips, base + per_speed * speed, jnp.maximum(state["air"], 0.0))
+            # a flip toward -torque on the right wheel turns the car as (1, -1) does
+            change = jnp.where(flips, torque - last, 0.0)
+            yaw = kick * (jnp.sign(change[0]) * (change[0] != 0)
+                          - jnp.sign(change[1]) * (change[1] != 0))
+            data = data.replace(qvel=data.qvel.at[2].add(yaw))
+            hop = air
+
+        def push(d, i=N_SUBSTEPS):
+            grounded = None
+            if hop is not None:
+                grounded = jnp.concatenate([(hop <= i).astype(jnp.float32), jnp.ones(1)])
+            f = self.traction(d, torque, params, loads, com, jitter, grounded)
             # (a traced lag, as the experiments' searches pass, always lags)
             if isinstance(self.force_lag, jax.Array) or self.force_lag > 0:
                 keep = jnp.exp(-self.timestep / jnp.maximum(self.force_lag, 1e-9))
                 f = keep * d.xfrc_applied[1] + (1.0 - keep) * f
             return d.replace(xfrc_applied=d.xfrc_applied.at[1].set(f))
 
-        data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda _, d: mjx.step(m, push(d)), data)
+        data = jax.lax.fori_loop(0, N_SUBSTEPS, lambda i, d: mjx.step(m, push(d, i)), data)
         data = mjx.forward(m, push(data))
         dt = N_SUBSTEPS * self.timestep
         spin = self.caster_spin(data, jax.random.uniform(key))
@@ -405,6 +434,8 @@ class CarRobot(Robot):
                                dt)
         drive = jnp.mean(jnp.abs(torque)) / self.torque_limit
         out = {"caster_quat": quat, "caster_spin": spin, "drive": drive}
+        if hop is not None:
+            out |= {"last_torque": torque, "air": jnp.maximum(hop - N_SUBSTEPS, 0.0)}
         if self.gyro_rattle is not None:
             out |= {"turn": jnp.abs(torque[0] - torque[1]) / (2 * self.torque_limit),
                     "rattle": jnp.stack([jax.random.normal(jax.random.fold_in(key, 2), (2,)),
@@ -478,6 +509,8 @@ class CarRobot(Robot):
                "drive": jnp.float32(0.0)}
         if self.gyro_rattle is not None:  # `turn`; `rattle`: this and the last step's draws
             out |= {"turn": jnp.float32(0.0), "rattle": jnp.zeros((2, 2))}
+        if self.wheel_hop is not None:  # the last step's torques; substeps left off the ground
+            out |= {"last_torque": jnp.zeros(2), "air": jnp.zeros(2)}
         return out
 
 
