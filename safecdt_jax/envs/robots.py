@@ -259,7 +259,9 @@ class CarRobot(Robot):
     # where a car whose forces follow the slip at once reaches 1.14 and keeps 0.07; held drives
     # settle where they did. Each force evaluation (N_SUBSTEPS + 1 per env step, the last for
     # the sensors) moves the applied force 1 - exp(-timestep / force_lag) of the way to the
-    # slip's. 0: none (physics 5-7). An experiment for issue 48, not a physics version.
+    # slip's. 0: none (physics 5-7). An experiment for issue 48, not a physics version; it
+    # slows the rise and the decay alike and matches neither (native's flipped wheel hops
+    # instead: `wheel_hop`; docs/research/environment-fidelity.md, 2026-12-08).
     force_lag: float = 0.0
     # A wheel hop at each torque reversal, as native's soft contacts make it
     # (`experiments.wheel_hop`): when a wheel's full torque flips sign while the car moves
@@ -387,7 +389,9 @@ class CarRobot(Robot):
         """Advances N_SUBSTEPS physics steps with wheel torques clip(a, +-0.02) * gear scale;
         rolls the caster (its stick-slip drawn with `key`) and records the drive level (mean
         |torque| / limit) for the chatter; the options `load_jitter` and `gyro_rattle` draw
-        from `key` too (folded, so the caster's draw is the same with or without them)."""
+        from `key` too (folded, so the caster's draw is the same with or without them),
+        `force_lag` lags the applied force and `wheel_hop` kicks the yaw at a wheel's torque
+        flip and lifts that wheel for its substeps."""
         m = _scaled_model(model, params)
         torque = params.gear_scale * self.executed_action(action)
         loads = jnp.asarray(self._loads(), jnp.float32)
