@@ -411,13 +411,11 @@ class CarRobot(Robot):
             full = 0.5 * self.torque_limit * params.gear_scale
             flips = ((torque * last < 0) & (jnp.abs(torque) > full) & (jnp.abs(last) > full)
                      & (state["air"] <= 0) & (speed > 0.1))
-            air = jnp.where(flips, base + per_speed * speed, jnp.maximum(state["air"], 0.0))
+            hop = jnp.where(flips, base + per_speed * speed, state["air"])  # substeps aloft
             # a flip toward -torque on the right wheel turns the car as (1, -1) does
             change = jnp.where(flips, torque - last, 0.0)
-            yaw = kick * (jnp.sign(change[0]) * (change[0] != 0)
-                          - jnp.sign(change[1]) * (change[1] != 0))
+            yaw = kick * (jnp.sign(change[0]) - jnp.sign(change[1]))
             data = data.replace(qvel=data.qvel.at[2].add(yaw))
-            hop = air
 
         def push(d, i=N_SUBSTEPS):
             grounded = None
